@@ -1,0 +1,1 @@
+"""Typed manifests and artifacts exchanged between stages."""
