@@ -1,0 +1,44 @@
+# objcam: `make demo` (set up, make the bundled synthetic scene, run everything) and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+OBJCAM := $(BIN)/objcam
+STAMP  := $(VENV)/.objcam-setup
+CAPTURE ?= demo/capture
+ARGS   ?=
+DEMO_SYNTH_ARGS ?= --object bunny --envmap forest
+
+STAGES := scene transport solve evaluate
+
+.PHONY: setup demo test bench status run clean-demo $(STAGES)
+
+setup: $(STAMP)
+$(STAMP): pyproject.toml requirements.lock scripts/setup.sh
+	@PYTHON=$(PYTHON) bash scripts/setup.sh
+
+$(CAPTURE)/capture.toml: | $(STAMP)
+	$(OBJCAM) synth $(CAPTURE) $(DEMO_SYNTH_ARGS)
+
+demo: $(STAMP)
+	@[ -f demo/capture/capture.toml ] || $(OBJCAM) synth demo/capture $(DEMO_SYNTH_ARGS)
+	$(OBJCAM) run demo/capture $(ARGS)
+	$(OBJCAM) evaluate demo/capture --quiet
+	@echo "outputs: demo/capture/objcam/  (solve/<target>/envmap.exr and *.png, evaluate/metrics.json)"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q $(ARGS)
+
+bench: $(STAMP)
+	$(BIN)/python -m bench.run $(ARGS)
+
+run: $(STAMP)
+	$(OBJCAM) run $(CAPTURE) $(ARGS)
+
+status: $(STAMP)
+	$(OBJCAM) status $(CAPTURE)
+
+$(STAGES): $(STAMP)
+	$(OBJCAM) $@ $(CAPTURE) $(ARGS)
+
+clean-demo:
+	rm -rf demo

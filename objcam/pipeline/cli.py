@@ -1,0 +1,142 @@
+"""``objcam`` command line: run the pipeline on a capture, one stage of it, its status, or make a synthetic scene.
+
+    objcam run CAPTURE [--until S] [--force S] [--set stage.param=value] [--work DIR]
+    objcam <stage> CAPTURE [...]          run one stage (and what it needs)
+    objcam status CAPTURE                 done / stale / missing for every stage
+    objcam synth OUT [--object bunny] [--envmap forest] ...
+    objcam evaluate CAPTURE               metrics against truth/ (synthetic captures)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from objcam.errors import ObjcamError
+from objcam.pipeline import graph
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=False, highlight=False)
+
+
+def _pipeline_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("capture", type=Path, help="capture folder (holds capture.toml)")
+    p.add_argument("--work", type=Path, default=None, help="artifact folder (default CAPTURE/objcam)")
+    p.add_argument("--force", action="append", default=[], metavar="STAGE",
+                   help="rerun this stage and everything downstream even if cached (repeatable)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                   help="override a stage parameter, e.g. --set transport.model=direct (repeatable)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="objcam", description="Turn an ordinary object into a camera.")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run the pipeline (cached stages are skipped)")
+    _pipeline_args(p)
+    p.add_argument("--until", default=None, metavar="STAGE", help="stop after this stage")
+    for name in graph.STAGES:
+        if name == "evaluate":
+            continue
+        p = sub.add_parser(name, help=f"run stage '{name}' (and any stage it needs)")
+        _pipeline_args(p)
+    p = sub.add_parser("evaluate", help="metrics against the capture's truth/ (runs what is needed first)")
+    _pipeline_args(p)
+    p = sub.add_parser("status", help="which stages are done, stale or missing")
+    p.add_argument("capture", type=Path)
+    p.add_argument("--work", type=Path, default=None)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.PARAM=VALUE")
+    p = sub.add_parser("synth", help="render a synthetic known-geometry capture")
+    from objcam.pipeline.synth_cli import add_synth_args
+
+    add_synth_args(p)
+    return ap
+
+
+def _print_reports(console, reports, title: str) -> None:
+    from rich.table import Table
+
+    t = Table(title=title, show_lines=False)
+    for col in ("stage", "status", "time", "summary"):
+        t.add_column(col, overflow="fold")
+    for r in reports:
+        style = {"ran": "green", "cached": "cyan", "failed": "red"}.get(r.status, "")
+        t.add_row(r.stage, f"[{style}]{r.status}[/]", f"{r.seconds:.2f} s", r.summary)
+    console.print(t)
+
+
+def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
+    from objcam.pipeline.engine import Pipeline, parse_overrides
+
+    console = _console()
+    if args.quiet:
+        os.environ["OBJCAM_QUIET"] = "1"
+    pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides), quiet=args.quiet)
+
+    def live(rep) -> None:
+        word = "skipped (unchanged)" if rep.status == "cached" else f"done in {rep.seconds:.2f} s"
+        console.print(f"[bold]{rep.stage}[/]: {word}  {rep.summary}")
+
+    reports = pipe.run(until=until, force=args.force, only=only, on_stage=live)
+    _print_reports(console, reports, f"objcam: {args.capture}")
+    console.print(f"artifacts: {pipe.work}")
+    return 0
+
+
+def _status(args) -> int:
+    from rich.table import Table
+
+    from objcam.pipeline.engine import Pipeline, parse_overrides
+
+    pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides))
+    t = Table(title=f"objcam status: {args.capture}")
+    for col in ("stage", "state", "time", "key", "summary"):
+        t.add_column(col, overflow="fold")
+    for row in pipe.status():
+        style = {"done": "green", "stale": "yellow", "missing": "red"}[row["state"]]
+        secs = f"{row['seconds']:.2f} s" if row["seconds"] is not None else ""
+        t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], row["summary"])
+    _console().print(t)
+    return 0
+
+
+def _evaluate(args) -> int:
+    _run(args, only=["evaluate"])
+    from objcam.pipeline.engine import Pipeline
+
+    pipe = Pipeline(args.capture, args.work)
+    metrics = json.loads((pipe.stage_dir("evaluate") / "metrics.json").read_text())
+    _console().print_json(json.dumps(metrics))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "run":
+            return _run(args, until=args.until)
+        if args.command == "status":
+            return _status(args)
+        if args.command == "evaluate":
+            return _evaluate(args)
+        if args.command == "synth":
+            from objcam.pipeline.synth_cli import run_synth
+
+            return run_synth(args)
+        return _run(args, only=[args.command])
+    except ObjcamError as e:
+        print(f"objcam: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("objcam: interrupted; finished stages are kept, rerun to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

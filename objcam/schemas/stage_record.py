@@ -1,0 +1,23 @@
+"""``stage.json``: what the engine records beside every finished stage's artifacts."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict
+
+
+class StageRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    stage: str
+    key: str  # hash of everything below that determines the outputs
+    code: str  # hash of the stage's source
+    params: dict[str, Any]
+    inputs: dict[str, str]  # capture file (relative path) -> sha256
+    upstream: dict[str, str]  # upstream stage -> its key
+    wall_seconds: float
+    peak_rss_mb: float  # peak resident memory of the process while the stage ran
+    metrics: dict[str, Any]
+    summary: str
+    finished: str  # ISO time
+    objcam_version: str

@@ -1,0 +1,175 @@
+"""Stage ``scene``: validate a known-geometry capture and normalise it into the scene artifact.
+
+Reads capture.toml, the meshes, albedo textures, target images and cameras; checks each and fails with one line
+naming the file and the fix; writes world-metre meshes, the scene description and every target's linear image
+and valid-pixel mask (see objcam/schemas/artifacts.py). Nothing in the capture folder is written.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from objcam.camera import Camera
+from objcam.errors import InputError
+from objcam.image_io import atomic_write_text, read_exr, write_exr, write_png
+from objcam.pipeline.stage import StageInputs, StageOutputs
+from objcam.scene import AlbedoValue, MeshData, SceneDescription, load_mesh, make_plane
+from objcam.schemas.artifacts import TargetRecord
+from objcam.schemas.capture import CaptureManifest, TextureAlbedo
+
+NAME = "scene"
+DEPS: tuple[str, ...] = ()
+VERSION = "1"
+
+# An object taller than this is almost surely in millimetres or centimetres, not metres.
+MAX_PLAUSIBLE_OBJECT_SIZE_M = 5.0
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    ground_tolerance: float = 0.005  # metres: how far the object's lowest point may sit from z = 0
+
+
+def input_files(capture: Path) -> list[Path]:
+    """Every capture file this stage reads (their contents key the cache)."""
+    capture = Path(capture)
+    files = [capture / "capture.toml"]
+    try:
+        m = CaptureManifest.load(capture)
+    except InputError:
+        return files  # run() reports the error
+    files.append(capture / m.scene.object)
+    if m.scene.support != "plane":
+        files.append(capture / m.scene.support)
+    for a in (m.albedo.object, m.albedo.support):
+        if isinstance(a, TextureAlbedo):
+            files.append(capture / a.texture)
+    for t in m.targets:
+        files += [capture / t.image, capture / t.camera] + ([capture / t.mask] if t.mask else [])
+    return files
+
+
+def _check_object(mesh: MeshData, path: Path, tol: float) -> None:
+    lo, hi = mesh.bbox
+    size = float(np.max(hi - lo))
+    if size > MAX_PLAUSIBLE_OBJECT_SIZE_M:
+        unit = "millimetres" if size > 50 else "centimetres"
+        raise InputError(f"object is {size:.4g} units across: looks like {unit}, objcam expects metres", path,
+                         "rescale the mesh to metres")
+    if size <= 0:
+        raise InputError("object mesh is degenerate (zero size)", path)
+    if abs(float(lo[2])) > max(tol, 0.02 * size):
+        raise InputError(f"object's lowest point is at z = {lo[2]:.4g} m, not on the support plane z = 0", path,
+                         "translate the mesh so it rests on z = 0 (world frame: metres, z up)")
+
+
+def _albedo(spec, capture: Path, out: Path, name: str) -> AlbedoValue:
+    if spec is None:
+        return AlbedoValue()
+    if isinstance(spec, float):
+        return AlbedoValue(rgb=(spec, spec, spec))
+    if isinstance(spec, tuple):
+        return AlbedoValue(rgb=spec)
+    tex = read_exr(capture / spec.texture)
+    if not np.all(np.isfinite(tex)) or tex.min() < 0:
+        raise InputError("albedo texture has negative, NaN or infinite values", capture / spec.texture,
+                         "albedo must lie in [0, 1]")
+    if tex.max() > 1.0 + 1e-3:
+        raise InputError(f"albedo texture exceeds 1 (max {tex.max():.3g})", capture / spec.texture,
+                         "store linear albedo in [0, 1]")
+    tex = tex[..., :3] if tex.shape[2] >= 3 else np.repeat(tex[..., :1], 3, axis=2)
+    fname = f"albedo_{name}.exr"
+    write_exr(out / fname, tex)
+    return AlbedoValue(texture=fname)
+
+
+def _target(spec, capture: Path, out: Path) -> TargetRecord:
+    import cv2
+
+    cam = Camera.load(capture / spec.camera)
+    img_path = capture / spec.image
+    img = read_exr(img_path)
+    h, w = img.shape[:2]
+    if (w, h) != (cam.width, cam.height):
+        raise InputError(f"image is {w}x{h} but its camera says {cam.width}x{cam.height}", img_path,
+                         f"use the camera file that took this image, or fix width/height in {spec.camera}")
+    if img.shape[2] not in (1, 3, 4):
+        raise InputError(f"image has {img.shape[2]} channels", img_path, "give an RGB or grey linear image")
+    rgb = img[..., :3] if img.shape[2] >= 3 else np.repeat(img[..., :1], 3, axis=2)
+    finite = np.isfinite(rgb).all(axis=2)
+    if not finite.all():
+        n = int((~finite).sum())
+        raise InputError(f"image has {n} NaN or infinite pixels", img_path,
+                         "re-export it, or mark those pixels invalid in a mask and set them to 0")
+    if rgb.min() < -1e-6 * max(float(np.abs(rgb).max()), 1e-30):
+        raise InputError(f"image has negative values (min {rgb.min():.3g}): not linear radiance", img_path,
+                         "give a linear HDR image (black level subtracted, values >= 0)")
+    valid = np.ones((h, w), bool)
+    if spec.saturation is not None:
+        valid &= ~(rgb >= spec.saturation).any(axis=2)
+    if spec.mask:
+        mpath = capture / spec.mask
+        mask = cv2.imread(str(mpath), cv2.IMREAD_UNCHANGED)
+        if mask is None:
+            raise InputError("mask cannot be read", mpath, "give a PNG, nonzero = usable pixel")
+        if mask.shape[:2] != (h, w):
+            raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {w}x{h}", mpath)
+        valid &= (mask.reshape(h, w, -1) > 0).any(axis=2)
+    if not valid.any():
+        raise InputError("no usable pixel (all saturated or masked)", img_path,
+                         "use a shorter exposure or check the mask")
+    rel = Path("targets") / spec.name
+    write_exr(out / rel / "image.exr", np.maximum(rgb, 0.0))
+    write_png(out / rel / "valid.png", valid.astype(np.float64))
+    return TargetRecord(name=spec.name, camera=cam, image=str(rel / "image.exr"), valid=str(rel / "valid.png"),
+                        saturation=spec.saturation, noise_sigma=spec.noise_sigma, n_valid=int(valid.sum()),
+                        n_pixels=h * w)
+
+
+def run(inputs: StageInputs, params: Params) -> StageOutputs:
+    capture, out = inputs.capture, inputs.out
+    manifest = CaptureManifest.load(capture)
+    obj_path = capture / manifest.scene.object
+    obj = load_mesh(obj_path)
+    _check_object(obj, obj_path, params.ground_tolerance)
+    obj.save(out / "object.npz")
+
+    tex_extent = None
+    if isinstance(manifest.albedo.support, TextureAlbedo):
+        tex_extent = manifest.albedo.support.extent
+    if manifest.scene.support == "plane":
+        support = make_plane(manifest.scene.plane_size, tex_extent)
+    else:
+        support = load_mesh(capture / manifest.scene.support)
+    support.save(out / "support.npz")
+
+    desc = SceneDescription(
+        object_mesh="object.npz", support_mesh="support.npz", support_is_plane=manifest.scene.support == "plane",
+        albedo_object=_albedo(manifest.albedo.object, capture, out, "object"),
+        albedo_support=_albedo(manifest.albedo.support, capture, out, "support"),
+    )
+    for which, a in (("object", desc.albedo_object), ("support", desc.albedo_support)):
+        if a.texture and which == "object" and obj.uv is None:
+            raise InputError("object albedo is a texture but the mesh has no UVs", obj_path,
+                             "export the mesh with texture coordinates, or give a constant albedo")
+    atomic_write_text(out / "scene.json", desc.model_dump_json(indent=2))
+
+    targets = [_target(t, capture, out) for t in manifest.targets]
+    atomic_write_text(out / "targets.json", json.dumps([t.model_dump() for t in targets], indent=2))
+
+    lo, hi = obj.bbox
+    unknown = [w for w, a in (("object", desc.albedo_object), ("support", desc.albedo_support)) if not a.known]
+    metrics = {
+        "object_faces": int(len(obj.faces)),
+        "object_height_m": float(hi[2] - lo[2]),
+        "targets": len(targets),
+        "valid_pixel_fraction": float(sum(t.n_valid for t in targets) / sum(t.n_pixels for t in targets)),
+        "unknown_albedo": unknown,
+    }
+    summary = (f"{len(obj.faces):,} faces, {metrics['object_height_m'] * 100:.1f} cm tall; {len(targets)} target(s)"
+               + (f"; unknown albedo: {', '.join(unknown)}" if unknown else ""))
+    return StageOutputs(metrics=metrics, summary=summary)
