@@ -22,6 +22,7 @@ from objcam.errors import StageError
 from objcam.image_io import atomic_write_text, write_exr, write_png, write_tonemapped_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
+from objcam.solvers.regularization import DEFAULT_LR_REL, DEFAULT_LS_REL
 from objcam.threads import single_blas_thread
 
 NAME = "solve"
@@ -34,8 +35,8 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
     method: Literal["exact", "paper"] = Field("exact", description="exact bound-constrained minimiser, or the "
                                               "method's damped Newton steps with clipping (baseline)")
-    ls: float = Field(1e-3, ge=0, description="smoothness weight, relative to mean(diag(A^T A))")
-    lr: float = Field(1e-5, ge=0, description="L2 (ridge) weight, relative to mean(diag(A^T A))")
+    ls: float = Field(DEFAULT_LS_REL, ge=0, description="smoothness weight, relative to mean(diag(A^T A))")
+    lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative to mean(diag(A^T A))")
 
 
 def _pixels(transport, image: np.ndarray, valid: np.ndarray):
@@ -46,6 +47,11 @@ def _pixels(transport, image: np.ndarray, valid: np.ndarray):
     y = img.reshape(-1, 3)[transport.pixel_index].astype(np.float64)
     use = ok.reshape(-1)[transport.pixel_index]
     return img, ok, y, use
+
+
+def _transport_key(tr, target_name: str) -> str:
+    """Identifies the A a target uses (targets sharing a camera share one A)."""
+    return str(getattr(tr, "folder", target_name))
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
@@ -68,23 +74,26 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         grid = EnvGrid(tr.env_height)
         C = tr.A.shape[0]
         t0 = time.perf_counter()
+        X, kkt, obj, iters = np.zeros((tr.A.shape[2], 3)), np.zeros(3), np.zeros(3), 0
         with single_blas_thread():
-            ck = (id(tr.A_source), use.tobytes().__hash__(), params.ls, params.lr)
-            X = np.zeros((tr.A.shape[2], 3))
-            kkt, obj, iters = np.zeros(3), np.zeros(3), 0
             for c in range(C):
+                # one Gram matrix per (A, channel, usable pixels): shared by every channel of a grey A and by
+                # every target that shares the camera and the valid mask
+                key = (_transport_key(tr, target.name), c, hash(use.tobytes()))
                 Ac = tr.A[c][use]
-                if (ck, c) not in gram_cache:
-                    gram_cache[(ck, c)] = solvers.regularized_gram(Ac, grid, tr.texel_index, params.ls, params.lr)
-                Q, reg = gram_cache[(ck, c)]
+                if key not in gram_cache:
+                    G = solvers.gram(Ac)
+                    ls_abs, lr_abs = solvers.absolute_weights(G, params.ls, params.lr)
+                    D = solvers.difference_operator(grid, tr.texel_index)
+                    gram_cache[key] = solvers.regularized_gram(G, D, ls_abs, lr_abs)
+                Q = gram_cache[key]
                 chans = [0, 1, 2] if C == 1 else [c]
-                B = Ac.T.astype(np.float64) @ y[use][:, chans]
-                solve = solvers.solve_exact if params.method == "exact" else solvers.solve_paper
-                res = solve(Q, B)
+                Yc = y[use][:, chans]
+                B = solvers.rhs(Ac, Yc)
+                res = (solvers.solve_exact if params.method == "exact" else solvers.solve_paper)(Q, B)
                 X[:, chans] = res.x
                 kkt[chans], iters = res.kkt_residual, max(iters, res.iterations)
-                yty = np.einsum("ij,ij->j", y[use][:, chans], y[use][:, chans])
-                obj[chans] = solvers.objective(Q, B, res.x, yty)
+                obj[chans] = solvers.objective(Q, B, res.x, np.einsum("ij,ij->j", Yc, Yc))
         solve_s = time.perf_counter() - t0
 
         env = np.zeros((grid.n_texels, 3))
