@@ -4,8 +4,9 @@ The true envmap is area-averaged (solid-angle exact) to the solve resolution and
 solve kept: relative RMSE, RMSE and SSIM of tonemapped maps, and the angle between brightest sources (see
 objcam/metrics.py). A capture without ``truth/`` gets an explicit "no truth" record, not a silent pass.
 
-Writes ``metrics.json`` ({target: metrics}) and ``<target>/compare.png`` (truth | estimate | |error|, one
-exposure: the truth's 99th percentile, gamma 2.2).
+Writes ``metrics.json`` ({target: metrics}), ``<target>/compare.png`` (truth | estimate | |error|, one
+exposure: the truth's 99th percentile, gamma 2.2) and ``<target>/overview.png`` (target photo | truth |
+estimate, with titles).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from objcam.envmap import resample_to_height
+from objcam.figures import overview_figure
 from objcam.errors import InputError
 from objcam.image_io import atomic_write_text, read_exr, tonemap, write_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
@@ -82,16 +84,21 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             raise InputError(f"truth envmap is {truth_full.shape[1]}x{truth_full.shape[0]}, not 2H x H", tpath)
         truth = resample_to_height(truth_full, est.shape[0])
         m = envmap_metrics(est, truth, mask, scale_invariant=params.scale_invariant)
+        # strict JSON: an undefined metric (e.g. no bright source in an all-zero estimate) is null, not NaN
+        m = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in m.items()}
         m["truth_file"] = str(tpath.relative_to(inputs.capture))
         results[target.name] = m
         _compare_png(inputs.out / target.name / "compare.png", truth, est, mask)
+        overview_figure(inputs.out / target.name / "overview.png",
+                        read_exr(solve_dir / target.name / "target.exr")[..., :3], truth, est, mask,
+                        title=f"{target.name}: SSIM {m['ssim']:.3f}, relative RMSE {m['relative_rmse']:.3f}")
 
     if not results:
         atomic_write_text(inputs.out / "metrics.json", json.dumps({"truth": False}, indent=2))
         return StageOutputs(metrics={"truth": False}, summary="no truth/ in the capture: nothing to compare")
     atomic_write_text(inputs.out / "metrics.json", json.dumps(results, indent=2))
     keys = ("relative_rmse", "tonemapped_rmse", "ssim", "brightest_angle_deg")
-    mean = {k: float(np.mean([r[k] for r in results.values() if k in r])) for k in keys
-            if any(k in r for r in results.values())}
+    mean = {k: float(np.mean([r[k] for r in results.values() if r.get(k) is not None])) for k in keys
+            if any(r.get(k) is not None for r in results.values())}
     summary = ", ".join(f"{k} {v:.3f}" for k, v in mean.items()) + f" (mean of {len(results)} target(s))"
     return StageOutputs(metrics={"targets": results, "mean": mean}, summary=summary)
