@@ -148,7 +148,7 @@ def to_mitsuba_bitmap(env: np.ndarray) -> np.ndarray:
     """The array to hand Mitsuba's ``envmap`` emitter (with :func:`mitsuba_envmap_to_world`) for an envmap in
     objcam's convention: the columns reversed.
 
-    Mitsuba looks a local direction d up at u = 1/2 + atan2(d.x, -d.z) / (2 pi), v = acos(d.y) / pi, so its
+    Mitsuba 3 looks a local direction d up at u = atan2(d.x, -d.z) / (2 pi) (mod 1), v = acos(d.y) / pi, so its
     azimuth turns clockwise about its up axis seen from above, ours anticlockwise about +z. Reversing the columns
     lets a proper rotation (no mirror in ``to_world``) do the rest.
     """
@@ -158,14 +158,14 @@ def to_mitsuba_bitmap(env: np.ndarray) -> np.ndarray:
 def mitsuba_envmap_to_world() -> np.ndarray:
     """4x4 ``to_world`` for Mitsuba's ``envmap`` emitter holding :func:`to_mitsuba_bitmap` of an envmap.
 
-    With reversed columns, our column c sits at Mitsuba u' = 1 - (c + 0.5)/W, where atan2(d.x, -d.z) = pi - phi,
-    i.e. local (x, y, z) = (sin phi sin theta, cos theta, cos phi sin theta). Hence local x -> world y,
-    local y -> world z, local z -> world x: a rotation (determinant +1). tests/test_conventions.py renders single
+    With reversed columns, our column c sits at Mitsuba u' = 1 - (c + 0.5)/W, where atan2(d.x, -d.z) = -phi,
+    i.e. local (x, y, z) = (-sin phi sin theta, cos theta, -cos phi sin theta). Hence local x -> world -y,
+    local y -> world +z, local z -> world -x: a rotation (determinant +1). tests/test_conventions.py renders single
     texels through Mitsuba and checks they land where this module says.
     """
     m = np.zeros((4, 4))
-    m[:3, 0] = [0.0, 1.0, 0.0]  # local x -> world +y
+    m[:3, 0] = [0.0, -1.0, 0.0]  # local x -> world -y
     m[:3, 1] = [0.0, 0.0, 1.0]  # local y (Mitsuba's up) -> world +z
-    m[:3, 2] = [1.0, 0.0, 0.0]  # local z -> world +x
+    m[:3, 2] = [-1.0, 0.0, 0.0]  # local z -> world -x
     m[3, 3] = 1.0
     return m
