@@ -1,0 +1,229 @@
+"""``make bench``: speed against error for objcam's transport models and solvers, on bundled HDRIs.
+
+One scene (the bunny on a grey plane, one 128 x 128 camera) under several HDRIs: every target is path-traced
+with global illumination at high spp plus camera noise (objcam synth). Because the geometry and camera are shared,
+all HDRIs are targets of ONE capture, so each transport setting builds A once and every HDRI is solved against it.
+
+For each transport setting: the time to build A and its accuracy against a path-traced reference restricted to
+direct light (Mitsuba, max_depth 2, high spp, two seeds so the reference's own noise is subtracted) on a sample
+of columns; for each solve method: solve time, KKT residual and the envmap metrics against truth.
+
+    python -m bench.run [--quick] [--out bench/out] [--results bench/results.md]
+
+Results go to bench/results.md (committed) and bench/out/results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HDRIS = ("forest", "courtyard", "sunset", "city", "sunrise")
+SETTINGS_FULL = [
+    ("direct K=1", {"model": "direct", "samples": 1, "subpixel_samples": 8}),
+    ("direct K=4", {"model": "direct", "samples": 4, "subpixel_samples": 32}),
+    ("direct K=16", {"model": "direct", "samples": 16, "subpixel_samples": 64}),
+    ("auto", {"model": "auto"}),
+    ("path 16 spp", {"model": "path", "path_spp": 16}),
+    ("path 64 spp", {"model": "path", "path_spp": 64}),
+]
+SETTINGS_QUICK = SETTINGS_FULL[:4]
+METHODS = ("exact", "paper")
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def synth_targets(out: Path, hdris, spp: int, size: int, noise_rel: float) -> Path:
+    """Render each HDRI's target (cached by its parameters) and assemble one capture with all of them."""
+    from objcam.synth import SynthParams, synthesize
+
+    capture = out / "capture"
+    params_key = json.dumps({"hdris": list(hdris), "spp": spp, "size": size, "noise": noise_rel})
+    if (capture / "bench_params.json").is_file() and (capture / "bench_params.json").read_text() == params_key:
+        return capture
+    shutil.rmtree(capture, ignore_errors=True)
+    (capture / "targets").mkdir(parents=True)
+    (capture / "truth").mkdir()
+    truth_map, toml_targets = {}, []
+    for h in hdris:
+        src = out / "synth" / f"{h}-{spp}spp-{size}px"
+        if not (src / "capture.toml").is_file():
+            shutil.rmtree(src, ignore_errors=True)
+            t0 = time.perf_counter()
+            p = SynthParams(envmap=h, spp=spp, cameras=[{"width": size, "height": size}],
+                            shot_noise=noise_rel if noise_rel > 0 else 1e-3, noise=noise_rel > 0)
+            synthesize(src, p)
+            log(f"  rendered target '{h}' ({spp} spp) in {time.perf_counter() - t0:.0f} s")
+        if not (capture / "object.ply").exists():
+            shutil.copy(src / "object.ply", capture / "object.ply")
+        shutil.copy(src / "targets" / "t0.exr", capture / "targets" / f"{h}.exr")
+        shutil.copy(src / "targets" / "t0.json", capture / "targets" / f"{h}.json")
+        shutil.copy(src / "truth" / "envmap.exr", capture / "truth" / f"{h}.exr")
+        truth_map[h] = f"truth/{h}.exr"
+        meta = json.loads((src / "truth" / "truth.json").read_text())["targets"]["t0"]
+        toml_targets.append(f'[[targets]]\nname = "{h}"\nimage = "targets/{h}.exr"\ncamera = "targets/{h}.json"\n'
+                            f'noise_sigma = {meta["noise_sigma"]:.6g}\n')
+    toml = ('[scene]\nobject = "object.ply"\n\n[albedo]\nobject = 0.6\nsupport = 0.5\n\n'
+            + "\n".join(toml_targets))
+    (capture / "capture.toml").write_text(toml)
+    (capture / "truth" / "truth.json").write_text(json.dumps({"envmaps": truth_map}, indent=2))
+    (capture / "bench_params.json").write_text(params_key)
+    return capture
+
+
+def reference_columns(capture: Path, work: Path, n_cols: int, spp: int, seed: int = 1) -> dict:
+    """Path-traced direct-light (max_depth 2) columns of A for a sample of texels, rendered twice."""
+    from objcam.schemas.artifacts import SceneArtifact
+    from objcam.transport import load_transport
+    from objcam.transport.geometry import SceneGeometry
+    from objcam.transport.path import PathRenderer
+
+    cache = work.parent / f"reference-{n_cols}cols-{spp}spp.npz"
+    tr = load_transport(work / "transport", HDRIS_USED[0])
+    if cache.is_file():
+        z = np.load(cache)
+        if np.array_equal(z["pixel_index"], tr.pixel_index):
+            return dict(z)
+    scene = SceneArtifact.load(work / "scene")
+    target = scene.targets[0]
+    geo = SceneGeometry.load(scene.description, scene.folder, env_height=tr.env_height)
+    pr = PathRenderer(geo, target.camera, tr.downsample, tr.pixel_index, tr.env_height)
+    rng = np.random.default_rng(seed)
+    # columns with signal, spread over the kept texels (brighter columns weighted in, horizon included)
+    norms = np.linalg.norm(tr.A[0], axis=0)
+    cand = np.flatnonzero(norms > 0.02 * norms.max())
+    pick = np.sort(rng.choice(cand, size=min(n_cols, cand.size), replace=False))
+    texels = tr.texel_index[pick]
+    ref_a, ref_b = [], []
+    t0 = time.perf_counter()
+    for j, t in enumerate(texels):
+        env = pr.onehot([t])
+        ref_a.append(pr.render(env, spp, 2, seed=1000 + j).mean(axis=1))
+        ref_b.append(pr.render(env, spp, 2, seed=5000 + j).mean(axis=1))
+    out = {"pixel_index": tr.pixel_index, "texels": texels, "ref_a": np.array(ref_a), "ref_b": np.array(ref_b),
+           "seconds": time.perf_counter() - t0, "spp": spp}
+    np.savez(cache, **out)
+    return out
+
+
+def column_error(tr, ref: dict) -> float:
+    """Relative column L2 of A against the reference, with the reference's own Monte-Carlo noise removed:
+    E||a - r||^2 = ||a - r_true||^2 + sigma^2, and sigma^2 = E||r_a - r_b||^2 / 2 from the two renders."""
+    col = {t: i for i, t in enumerate(tr.texel_index)}
+    A = tr.A.mean(axis=0) if tr.A.shape[0] > 1 else tr.A[0]
+    # A's rows are the kept pixels; the reference was rendered at the same pooled pixels
+    if not np.array_equal(ref["pixel_index"], tr.pixel_index):
+        raise RuntimeError("reference columns were rendered for other pixels")
+    num = den = 0.0
+    for k, t in enumerate(ref["texels"]):
+        a = A[:, col[int(t)]].astype(np.float64)
+        ra, rb = ref["ref_a"][k], ref["ref_b"][k]
+        r = 0.5 * (ra + rb)
+        noise = 0.25 * np.sum((ra - rb) ** 2)  # variance of the mean of two renders
+        num += max(np.sum((a - r) ** 2) - noise, 0.0)
+        den += np.sum(r**2)
+    return float(np.sqrt(num / den))
+
+
+HDRIS_USED: list[str] = []
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer settings, lower spp (a smoke run)")
+    ap.add_argument("--out", type=Path, default=Path("bench/out"))
+    ap.add_argument("--results", type=Path, default=Path("bench/results.md"))
+    ap.add_argument("--hdris", default=",".join(HDRIS))
+    ap.add_argument("--target-spp", type=int, default=None)
+    ap.add_argument("--ref-spp", type=int, default=None)
+    ap.add_argument("--ref-columns", type=int, default=24)
+    args = ap.parse_args(argv)
+    os.environ.setdefault("OBJCAM_QUIET", "1")
+
+    from objcam.pipeline.engine import Pipeline
+
+    hdris = [h for h in args.hdris.split(",") if h]
+    HDRIS_USED[:] = hdris
+    target_spp = args.target_spp or (256 if args.quick else 4096)
+    ref_spp = args.ref_spp or (256 if args.quick else 2048)
+    settings = SETTINGS_QUICK if args.quick else SETTINGS_FULL
+    args.out.mkdir(parents=True, exist_ok=True)
+    log(f"bench: targets {', '.join(hdris)} at {target_spp} spp; settings: {', '.join(s for s, _ in settings)}")
+    capture = synth_targets(args.out, hdris, target_spp, 128, noise_rel=0.001)
+
+    rows, a_rows, ref = [], [], None
+    for label, tparams in settings:
+        work = args.out / "work" / label.replace(" ", "_").replace("=", "")
+        pipe = Pipeline(capture, work, overrides={"transport": tparams}, quiet=True)
+        for method in METHODS:
+            pipe.overrides = {"transport": tparams, "solve": {"method": method}}
+            reps = {r.stage: r for r in pipe.run()}
+            trep = reps["transport"]
+            srec = json.loads((work / "solve" / "stage.json").read_text())["metrics"]["targets"]
+            ev = json.loads((work / "evaluate" / "metrics.json").read_text())
+            for h in hdris:
+                rows.append({"setting": label, "method": method, "hdri": h,
+                             "solve_s": srec[h]["solve_seconds"], "kkt": srec[h]["kkt_residual_max"], **ev[h]})
+        if ref is None:
+            log(f"  reference columns: {args.ref_columns} texels x 2 renders at {ref_spp} spp (max_depth 2)")
+            ref = reference_columns(capture, work, args.ref_columns, ref_spp)
+        from objcam.transport import load_transport
+
+        tr = load_transport(work / "transport", hdris[0])
+        trec = json.loads((work / "transport" / "stage.json").read_text())
+        a_rows.append({"setting": label, "seconds": trec["wall_seconds"], "column_error": column_error(tr, ref),
+                       "pixels": int(tr.A.shape[1]), "texels": int(tr.A.shape[2]),
+                       "summary": trec["summary"]})
+        log(f"  {label}: A in {trec['wall_seconds']:.1f} s, column error {a_rows[-1]['column_error']:.4f}")
+
+    report = render_markdown(a_rows, rows, hdris, target_spp, ref, args)
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    args.results.write_text(report)
+    (args.out / "results.json").write_text(json.dumps({"transport": a_rows, "solve": rows}, indent=2, default=float))
+    print(report)
+    return 0
+
+
+def render_markdown(a_rows, rows, hdris, target_spp, ref, args) -> str:
+    import mitsuba
+
+    lines = ["# objcam benchmark: speed against error", "",
+             f"Machine: {os.cpu_count()} cores, {platform.processor() or platform.machine()}, Python "
+             f"{platform.python_version()}, Mitsuba {mitsuba.__version__}. Generated by `make bench`"
+             f"{' --quick' if args.quick else ''} on {time.strftime('%Y-%m-%d')}.", "",
+             f"Scene: the bundled bunny (8 cm) on a grey plane (albedo 0.5, bunny 0.6), one 128 x 128 camera, "
+             f"32 x 64 envmap. Targets: path-traced with global illumination at {target_spp} spp plus 0.1% "
+             "camera noise, one per HDRI.", "",
+             "## Transport: time to build A and its error", "",
+             f"Error: relative column L2 against Mitsuba's path tracer restricted to direct light (max_depth 2), "
+             f"{len(ref['texels'])} sampled columns rendered twice at {int(ref['spp'])} spp, the reference's own "
+             "noise subtracted.", "",
+             "| setting | A time (s) | column error | pixels x texels |", "|---|---:|---:|---|"]
+    for r in a_rows:
+        lines.append(f"| {r['setting']} | {r['seconds']:.1f} | {100 * r['column_error']:.2f}% | "
+                     f"{r['pixels']:,} x {r['texels']:,} |")
+    lines += ["", "## Solve: time and envmap error per HDRI", "",
+              "SSIM and RMSE of tonemapped maps (truth's 99th percentile, clip, gamma 1/2.2); relative RMSE = "
+              "RMSE / mean(truth) over solved texels; angle between brightest-source directions.", "",
+              "| A | solve | HDRI | solve (s) | KKT | SSIM | tonemapped RMSE | relative RMSE | brightest angle |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        ang = r.get("brightest_angle_deg")
+        lines.append(f"| {r['setting']} | {r['method']} | {r['hdri']} | {r['solve_s']:.3f} | {r['kkt']:.1e} | "
+                     f"{r['ssim']:.3f} | {r['tonemapped_rmse']:.3f} | {r['relative_rmse']:.3f} | "
+                     f"{'' if ang is None else f'{ang:.1f}'} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
