@@ -1,0 +1,124 @@
+"""Stage ``transport``: the light-transport matrix A (y = A x) of every distinct target camera.
+
+Reads the scene artifact (scene.json, meshes, targets.json); writes one zarr group per distinct camera and
+index.json (see objcam.transport.storage). Models: ``direct`` (shadow rays, culled; fast), ``path`` (one
+path-traced render per texel; the reference), ``auto`` (direct, plus a coarse path-traced indirect correction
+when sampled columns show more indirect light than the target's noise).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from objcam.pipeline.stage import StageInputs, StageOutputs
+
+NAME = "transport"
+DEPS = ("scene",)
+VERSION = "1"
+# the code whose changes invalidate cached transport artifacts
+CODE_DEPS = ("objcam.transport", "objcam.render", "objcam.scene", "objcam.envmap", "objcam.camera")
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    model: Literal["auto", "direct", "path"] = "auto"
+    env_height: int = Field(32, ge=2, description="envmap rows (width 2x)")
+    samples: int = Field(4, ge=1, description="direct: K shadow rays per traced (pixel, texel) pair, from K of "
+                                                   "the pixel's sub-pixel samples")
+    subpixel_samples: int = Field(32, ge=1, description="direct: S camera rays per pooled pixel (rounded up to a "
+                                                         "multiple of K); pairs at shadow boundaries and pixels "
+                                                         "mixing surfaces trace one ray per sample. Quality: 64")
+    refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
+    downsample: int = Field(1, ge=1, description="pool f x f pixel blocks (pool the target with pool_target)")
+    seed: int = 0
+    use_valid: bool = Field(True, description="skip pixels invalid in every target sharing the camera")
+    batch_rays: int = Field(1 << 24, ge=1024, description="shadow rays per Mitsuba launch (memory bound)")
+    chunk_columns: int = Field(128, ge=1)
+    path_spp: int = Field(64, ge=1)
+    path_max_depth: int = Field(8, description="Mitsuba path depth (2 = direct light only, -1 = unbounded)")
+    path_upsample: int = Field(8, ge=1, description="path renders: box-texel bitmap upsampling (ramps at texel "
+                                                    "boundaries 1/upsample texel wide)")
+    auto_columns: int = Field(16, ge=1, description="auto: columns sampled to measure indirect light")
+    auto_spp: int = Field(32, ge=2)
+    auto_max_depth: int = Field(6)
+    auto_noise: float | None = Field(None, gt=0, description="auto: relative target noise (else targets' "
+                                                             "noise_sigma, else estimated from the image)")
+    correction_scale: int = Field(4, ge=1, description="auto: indirect rendered at 1/scale pooled resolution")
+    correction_spp: int = Field(32, ge=1)
+    correction_texel_block: int = Field(4, ge=1, description="auto: indirect rendered per g x g texel block "
+                                                             "(bilinearly interpolated between blocks)")
+
+
+def run(inputs: StageInputs, params: Params) -> StageOutputs:
+    import json
+    import time
+
+    from objcam.schemas.artifacts import SceneArtifact
+    from objcam.transport.auto import estimate_relative_noise
+    from objcam.transport.build import BuildSettings, build_camera
+    from objcam.transport.geometry import SceneGeometry
+    from objcam.transport.storage import write_index
+
+    t0 = time.perf_counter()
+    art = SceneArtifact.load(inputs.upstream["scene"])
+    groups: dict[str, list] = {}
+    for t in art.targets:
+        groups.setdefault(json.dumps(t.camera.model_dump(), sort_keys=True), []).append(t)
+    geo = SceneGeometry.load(art.description, art.folder, env_height=params.env_height,
+                             upsample=params.path_upsample)
+    settings = BuildSettings(**params.model_dump())
+    mapping: dict[str, str] = {}
+    metrics: dict = {}
+    totals = {"pixels_kept": 0, "pixels_total": 0, "rays_traced": 0, "rays_culled": 0}
+    per_cam = []
+    for i, targets in enumerate(groups.values()):
+        sub = f"cam{i}"
+        valids = [t.load_valid(art.folder) for t in targets]
+        noise = (_target_noise(art.folder, targets, params.downsample, estimate_relative_noise)
+                 if params.model == "auto" else None)
+        m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
+                         targets=[t.name for t in targets], target_noise=noise)
+        per_cam.append(m)
+        for t in targets:
+            mapping[t.name] = sub
+        for key in totals:
+            totals[key] += int(m.get(key, 0))
+        if len(groups) > 1:
+            metrics.update({f"{sub}.{k}": v for k, v in m.items()})
+    write_index(inputs.out, mapping)
+    first = per_cam[0] if per_cam else {}
+    if len(groups) == 1:
+        metrics.update(first)
+    metrics.update(totals)
+    metrics["cameras"] = len(groups)
+    metrics["seconds_total"] = round(time.perf_counter() - t0, 3)
+    chosen = ",".join(sorted({str(m.get("model")) for m in per_cam}))
+    k_or_spp = f"K={params.samples}" if params.model != "path" else f"spp={params.path_spp}"
+    cams = f", {len(groups)} cameras" if len(groups) > 1 else ""
+    summary = (f"A: {totals['pixels_kept']:,} px x {first.get('texels_kept', 0):,} texels ({chosen} {k_or_spp}{cams}) "
+               f"in {metrics['seconds_total']:.1f} s")
+    return StageOutputs(metrics=metrics, summary=summary)
+
+
+def _target_noise(folder, targets, f: int, estimator) -> tuple[float, str]:
+    """The smallest relative noise among targets sharing a camera: their noise_sigma, else estimated from the
+    (pooled) image; 1% when neither is available."""
+    from objcam.transport.pixels import pool_target
+
+    given = [t.noise_sigma for t in targets if t.noise_sigma is not None]
+    if given:
+        return float(min(given)), "noise_sigma"
+    est = []
+    for t in targets:
+        try:
+            img, ok = pool_target(t.load_image(folder), t.load_valid(folder), f)
+        except Exception:
+            continue
+        e = estimator(img, ok)
+        if e is not None:
+            est.append(e)
+    if est:
+        return float(min(est)), "estimated"
+    return 0.01, "assumed"

@@ -1,0 +1,203 @@
+"""``model=auto``: is direct light enough? Measure the indirect light on a sample of columns and, when it is
+above the target's noise, add a cheap path-traced indirect correction to every column.
+
+Indirect light of a column is measured as render(max_depth=D) - render(max_depth=2) with the same seed: both
+renders draw the same random numbers for the camera ray and the first vertex, so their difference holds only
+paths with two or more bounces, without the direct light's noise. It is smooth in the image (and in the light
+direction), so it is rendered at a coarse pixel resolution (``scale``) and for blocks of g x g texels, then
+interpolated to the kept pixels and shared among a block's texels in proportion to their solid angle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from objcam.envmap import EnvGrid
+from objcam.progress import bar
+from objcam.transport.path import PathRenderer
+
+
+def estimate_relative_noise(image: np.ndarray, valid: np.ndarray) -> float | None:
+    """Relative noise sigma / mean of a linear image over its valid pixels (Immerkaer's Laplacian-difference
+    estimator, per channel, averaged); None when too few pixels."""
+    from scipy.ndimage import binary_erosion, convolve
+
+    img = np.nan_to_num(np.asarray(image, dtype=np.float64))
+    ok = binary_erosion(np.asarray(valid, bool), structure=np.ones((3, 3), bool), border_value=False)
+    if ok.sum() < 64:
+        return None
+    kern = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
+    rel = []
+    for c in range(img.shape[2]):
+        lap = convolve(img[..., c], kern, mode="nearest")
+        sigma = np.sqrt(np.pi / 2) / 6.0 * np.mean(np.abs(lap[ok]))
+        mean = np.mean(img[..., c][ok])
+        if mean > 0:
+            rel.append(sigma / mean)
+    return float(np.mean(rel)) if rel else None
+
+
+def choose_columns(texel_index: np.ndarray, norms: np.ndarray, n: int, env_height: int) -> np.ndarray:
+    """Up to n kept texels spread over the sphere: farthest-point sampling of their directions, starting from the
+    column with the most energy. Returns positions into ``texel_index``."""
+    n = min(n, texel_index.size)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    d = EnvGrid(env_height).directions().reshape(-1, 3)[texel_index]
+    chosen = [int(np.argmax(norms))]
+    dist = 1.0 - d @ d[chosen[0]]
+    for _ in range(n - 1):
+        i = int(np.argmax(dist))
+        chosen.append(i)
+        dist = np.minimum(dist, 1.0 - d @ d[i])
+    return np.array(sorted(chosen), dtype=np.int64)
+
+
+@dataclass
+class AutoReport:
+    relative_indirect: float  # ||sum_s indirect_s|| / ||sum_s direct_s|| over the sampled columns, noise-corrected
+    measurement_noise: float  # relative MC noise of that measurement
+    per_column_median: float  # median over the sampled columns of the same ratio
+    target_noise: float
+    noise_source: str
+    columns: int
+    choice: str  # "direct" or "direct+indirect"
+    seconds: float = 0.0
+
+    def metrics(self) -> dict:
+        return {"auto_relative_indirect": round(self.relative_indirect, 6),
+                "auto_measurement_noise": round(self.measurement_noise, 6),
+                "auto_per_column_median": round(self.per_column_median, 6),
+                "auto_target_noise": round(self.target_noise, 6), "auto_noise_source": self.noise_source,
+                "auto_columns": self.columns, "auto_choice": self.choice, "auto_seconds": round(self.seconds, 3)}
+
+
+def to_rgb(cols: np.ndarray) -> np.ndarray:
+    """(C, M, S) -> (M, 3, S)."""
+    return np.repeat(cols, 3, axis=0).transpose(1, 0, 2) if cols.shape[0] == 1 else cols.transpose(1, 0, 2)
+
+
+def indirect_render(pr: PathRenderer, env: np.ndarray, spp: int, max_depth: int, seed: int, scale: int) -> np.ndarray:
+    """(M, 3) radiance of paths with >= 2 bounces: render(max_depth) - render(2), same seed."""
+    full = pr.render(env, spp, max_depth, seed, scale=scale)
+    direct = pr.render(env, spp, 2, seed, scale=scale)
+    return full - direct
+
+
+def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: int, max_depth: int, seed: int,
+            scale: int, target_noise: float, noise_source: str) -> AutoReport:
+    """Compare the indirect light of columns ``texels`` with their direct light (C, M, S)."""
+    import time
+
+    t0 = time.perf_counter()
+    d = to_rgb(direct_cols).astype(np.float64)  # (M, 3, S)
+    half = max(1, spp // 2)
+    ia, ib = np.zeros(d.shape[:2]), np.zeros(d.shape[:2])
+    per = []
+    for s, j in enumerate(bar(texels, desc="auto: indirect", unit="col")):
+        env = pr.onehot([j])
+        a = indirect_render(pr, env, half, max_depth, seed * 7919 + 2 * s, scale)
+        b = indirect_render(pr, env, half, max_depth, seed * 7919 + 2 * s + 1, scale)
+        ia += a
+        ib += b
+        m, nz = 0.5 * (a + b), np.linalg.norm(d[:, :, s])
+        if nz > 0:
+            bias2 = np.sum(m**2) - np.sum((a - b) ** 2) / 4
+            per.append(np.sqrt(max(bias2, 0.0)) / nz)
+    dsum = np.linalg.norm(d.sum(axis=2))
+    mean = 0.5 * (ia + ib)
+    noise2 = np.sum((ia - ib) ** 2) / 4
+    bias2 = max(np.sum(mean**2) - noise2, 0.0)
+    rel = float(np.sqrt(bias2) / dsum) if dsum > 0 else 0.0
+    noise = float(np.sqrt(noise2) / dsum) if dsum > 0 else 0.0
+    choice = "direct" if rel <= target_noise else "direct+indirect"
+    return AutoReport(rel, noise, float(np.median(per)) if per else 0.0, float(target_noise), noise_source,
+                      int(len(texels)), choice, time.perf_counter() - t0)
+
+
+class IndirectCorrection:
+    """Indirect light per kept texel from coarse renders of g x g texel blocks (see the module docstring).
+
+    Each rendered block gives the indirect response per unit solid angle at its centre; a texel's correction is
+    its solid angle times the bilinear interpolation (in theta, phi; wrapping in phi) of those responses, with
+    weights renormalised over the blocks that were rendered (those holding a kept texel).
+    """
+
+    def __init__(self, pr: PathRenderer, texel_index: np.ndarray, env_height: int, block: int, spp: int,
+                 max_depth: int, seed: int, scale: int):
+        self.pr = pr
+        self.grid = EnvGrid(env_height)
+        self.texel_index = np.asarray(texel_index, dtype=np.int64)
+        self.g = max(1, int(block))
+        self.spp, self.max_depth, self.seed, self.scale = spp, max_depth, seed, scale
+        h, w = self.grid.height, self.grid.width
+        self.hc, self.wc = -(-h // self.g), -(-w // self.g)
+        rows_all, cols_all = np.divmod(np.arange(self.grid.n_texels), w)
+        self.block_all = (rows_all // self.g) * self.wc + (cols_all // self.g)
+        measure = self.grid.solid_angles().ravel()
+        self.block_omega = np.bincount(self.block_all, weights=measure, minlength=self.hc * self.wc)
+        self.omega = measure[self.texel_index]
+        self.blocks = np.unique(self.block_all[self.texel_index])
+        self.rendered = np.zeros(self.hc * self.wc, bool)
+        self.rendered[self.blocks] = True
+        # bilinear weights of every kept texel over the coarse block centres (theta and phi in block units)
+        r, c = np.divmod(self.texel_index, w)
+        y = (r + 0.5) / self.g - 0.5
+        x = (c + 0.5) / self.g - 0.5
+        y0 = np.floor(y).astype(np.int64)
+        x0 = np.floor(x).astype(np.int64)
+        fy, fx = y - y0, x - x0
+        nb, wt = [], []
+        # never interpolate across the horizon (the support plane makes light there discontinuous): with g
+        # dividing H/2, block rows < hc/2 lie above it
+        own_row = r // self.g
+        split = self.hc // 2 if (h // 2) % self.g == 0 else None
+        for dy, wy in ((0, 1 - fy), (1, fy)):
+            yy = np.clip(y0 + dy, 0, self.hc - 1)
+            if split is not None:
+                yy = np.where((yy < split) != (own_row < split), own_row, yy)
+            for dx, wx in ((0, 1 - fx), (1, fx)):
+                xx = np.mod(x0 + dx, self.wc)
+                nb.append(yy * self.wc + xx)
+                wt.append(wy * wx)
+        nb, wt = np.stack(nb, 1), np.stack(wt, 1)
+        wt = wt * self.rendered[nb]
+        tot = wt.sum(axis=1, keepdims=True)
+        own = self.block_all[self.texel_index]
+        lone = tot[:, 0] <= 1e-12  # no rendered neighbour with weight: use the texel's own block
+        wt = np.where(lone[:, None], 0.0, wt / np.maximum(tot, 1e-12))
+        nb[lone, 0], wt[lone, 0] = own[lone], 1.0
+        self.nb, self.wt = nb, wt
+        self._cache: dict[int, np.ndarray] = {}
+        self.renders = 0
+
+    def compute_all(self) -> None:
+        for b in bar(self.blocks, desc="auto: indirect correction", unit="block"):
+            self._block(int(b))
+
+    def _block(self, b: int) -> np.ndarray:
+        """(M, 3) indirect response per unit solid angle of block b."""
+        if b not in self._cache:
+            texels = np.nonzero(self.block_all == b)[0]
+            env = self.pr.onehot(texels)
+            d = indirect_render(self.pr, env, self.spp, self.max_depth, self.seed * 104729 + b, self.scale)
+            self._cache[b] = (d / self.block_omega[b]).astype(np.float32)
+            self.renders += 2
+        return self._cache[b]
+
+    def columns(self, a: int, b: int, channels: int) -> np.ndarray:
+        """(C, M, b - a) indirect light of kept texels a .. b - 1 (positions into texel_index)."""
+        cols = []
+        for i in range(a, b):
+            acc = None
+            for nb, wt in zip(self.nb[i], self.wt[i]):
+                if wt > 0:
+                    v = self._block(int(nb)) * float(wt)
+                    acc = v if acc is None else acc + v
+            cols.append(acc * float(self.omega[i]))
+        out = np.stack(cols, axis=2)  # (M, 3, B)
+        if channels == 1:
+            return out.mean(axis=1)[None]
+        return out.transpose(1, 0, 2)

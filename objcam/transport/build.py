@@ -1,0 +1,168 @@
+"""Build the transport matrix of one camera into a zarr group (see objcam.transport.storage)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from objcam.camera import Camera
+from objcam.envmap import EnvGrid
+from objcam.progress import bar
+from objcam.transport.geometry import SceneGeometry, primary_samples
+from objcam.transport.pixels import pool_target, pooled_shape
+from objcam.transport.storage import ColumnWriter, add_to_columns
+
+
+@dataclass
+class BuildSettings:
+    model: str = "auto"  # auto | direct | path
+    env_height: int = 32
+    samples: int = 4
+    subpixel_samples: int = 32
+    refine: bool = True
+    downsample: int = 1
+    seed: int = 0
+    use_valid: bool = True
+    batch_rays: int = 1 << 24
+    chunk_columns: int = 128
+    path_spp: int = 64
+    path_max_depth: int = 8
+    path_upsample: int = 8
+    auto_columns: int = 16
+    auto_spp: int = 32
+    auto_max_depth: int = 6
+    auto_noise: float | None = None
+    correction_scale: int = 4
+    correction_spp: int = 32
+    correction_texel_block: int = 4
+    pair_budget: int = 1 << 22  # (pixel, texel) pairs classified per block
+
+
+def candidate_pixels(camera: Camera, f: int, valids: list[np.ndarray] | None) -> np.ndarray:
+    """Flat pooled-pixel indices worth computing: those valid (whole block) in at least one target."""
+    hp, wp = pooled_shape(camera.height, camera.width, f)
+    if not valids:
+        return np.arange(hp * wp, dtype=np.int64)
+    ok = np.zeros((hp, wp), bool)
+    for v in valids:
+        ok |= pool_target(np.zeros(v.shape + (3,), np.float32), v, f)[1]
+    return np.nonzero(ok.ravel())[0].astype(np.int64)
+
+
+def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSettings, *,
+                 valids: list[np.ndarray] | None = None, targets: list[str] | None = None,
+                 target_noise: tuple[float, str] | None = None) -> dict:
+    """Compute A for ``camera`` into the zarr group ``folder``; returns the metrics.
+
+    valids: the targets' (H, W) valid masks (pixels invalid in all of them are not computed).
+    target_noise: (relative noise, where it came from) for model=auto; default 1% ("assumed").
+    """
+    t0 = time.perf_counter()
+    f, k = int(s.downsample), int(s.samples)
+    hp, wp = pooled_shape(camera.height, camera.width, f)
+    grid = EnvGrid(s.env_height)
+    n_total = grid.n_texels
+    channels = 1 if geo.desc.albedo_is_grey() else 3
+    cand = candidate_pixels(camera, f, valids if s.use_valid else None)
+    n_sub = k * -(-max(int(s.subpixel_samples), k) // k)  # a multiple of K
+    samples = primary_samples(geo, camera, f, n_sub, cand, wp, s.seed)
+    keep = samples.hit.any(axis=1)
+    samples = samples.subset(keep)
+    m = int(keep.sum())
+    if m == 0:
+        from objcam.errors import StageError
+
+        names = ", ".join(targets or []) or "a target"
+        raise StageError(f"no valid pixel of {names} sees the object or the support",
+                         fix="check the camera pose (world_from_camera is camera-to-world, OpenCV axes) and the "
+                             "valid mask")
+    metrics: dict = {"pixels_kept": m, "pixels_total": hp * wp, "pixels_candidate": int(cand.size),
+                     "texels_total": n_total, "channels": channels, "samples": k, "subpixel_samples": n_sub,
+                     "downsample": f}
+    writer = ColumnWriter(folder, channels, m, n_total, s.chunk_columns)
+    model = s.model
+    dm = pr = None
+    if model in ("direct", "auto"):
+        from objcam.transport.direct import DirectModel
+
+        dm = DirectModel(geo, samples, s.env_height, channels, rays=k, seed=s.seed, batch_rays=s.batch_rays,
+                         refine=s.refine, image_shape=(hp, wp))
+        rows_per = max(1, s.pair_budget // max(1, m * grid.width))
+        with bar(total=n_total, desc=f"transport: direct K={k}", unit="texel") as pb:
+            for r0 in range(0, grid.height, rows_per):
+                tex = np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
+                cols = dm.columns(tex)
+                nz = np.any(cols != 0, axis=(0, 1))
+                writer.append(tex[nz], cols[:, :, nz])
+                pb.update(tex.size)
+        st = dm.stats
+        metrics.update({"rays_traced": st.rays_traced, "rays_culled": st.rays_culled, "rays_total": st.rays_total,
+                        "pairs_zero": st.pairs_zero, "pairs_analytic": st.pairs_analytic,
+                        "pairs_traced": st.pairs_traced, "pairs_refined": st.pairs_refined})
+    elif model == "path":
+        from objcam.transport.path import PathRenderer
+
+        pr = PathRenderer(geo, camera, f, samples.pixel_index, s.env_height)
+        with bar(total=n_total, desc=f"transport: path spp={s.path_spp}", unit="texel") as pb:
+            for j in range(n_total):
+                y = pr.render(pr.onehot([j]), s.path_spp, s.path_max_depth, seed=s.seed * 1_000_003 + j)
+                col = y.mean(axis=1)[None] if channels == 1 else y.T
+                if np.any(col != 0):
+                    writer.append(np.array([j]), col[:, :, None])
+                pb.update(1)
+        metrics.update({"renders": pr.renders, "path_spp": s.path_spp, "path_max_depth": s.path_max_depth})
+        if pr.column_offset:
+            metrics["mitsuba_envmap_column_offset"] = pr.column_offset
+    elif model not in ("direct", "auto", "path"):
+        raise ValueError(f"unknown transport model {model!r}")
+    texel_index = writer.texel_index
+    metrics["seconds_direct" if model != "path" else "seconds_path"] = round(time.perf_counter() - t0, 3)
+
+    chosen = "direct" if model == "auto" else model
+    if model == "auto" and texel_index.size:
+        from objcam.transport.auto import IndirectCorrection, choose_columns, measure
+        from objcam.transport.path import PathRenderer
+
+        noise, source = target_noise if target_noise is not None else (0.01, "assumed")
+        if s.auto_noise is not None:
+            noise, source = float(s.auto_noise), "param"
+        pr = PathRenderer(geo, camera, f, samples.pixel_index, s.env_height)
+        pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height)
+        sample_tex = texel_index[pos]
+        rep = measure(pr, dm.columns(sample_tex), sample_tex, s.auto_spp, s.auto_max_depth, s.seed,
+                      s.correction_scale, noise, source)
+        metrics.update(rep.metrics())
+        chosen = rep.choice
+        if pr.column_offset:
+            metrics["mitsuba_envmap_column_offset"] = pr.column_offset
+        if rep.choice != "direct":
+            t1 = time.perf_counter()
+            corr = IndirectCorrection(pr, texel_index, s.env_height, s.correction_texel_block, s.correction_spp,
+                                      s.auto_max_depth, s.seed, s.correction_scale)
+            writer.flush()
+            corr.compute_all()
+            add_to_columns(folder, lambda a, b: corr.columns(a, b, channels))
+            metrics["correction_renders"] = corr.renders
+            metrics["correction_seconds"] = round(time.perf_counter() - t1, 3)
+
+    dirs = grid.directions().reshape(-1, 3)[texel_index].astype(np.float32)
+    omega = grid.solid_angles().ravel()[texel_index].astype(np.float32)
+    arrays = {"pixel_index": samples.pixel_index.astype(np.int64), "texel_index": texel_index,
+              "directions": dirs, "solid_angle": omega, "albedo": samples.albedo(),
+              "unknown_albedo": samples.unknown_albedo(), "coverage": samples.coverage(),
+              "object_fraction": samples.object_fraction()}
+    metrics["texels_kept"] = int(texel_index.size)
+    metrics["model"] = chosen
+    metrics["seconds"] = round(time.perf_counter() - t0, 3)
+    attrs = {"image_shape": [hp, wp], "downsample": f, "env_height": s.env_height, "channels": channels,
+             "model": chosen, "model_requested": model, "samples": k if model != "path" else None,
+             "subpixel_samples": n_sub,
+             "spp": s.path_spp if model == "path" else (s.auto_spp if model == "auto" else None),
+             "max_depth": s.path_max_depth if model == "path" else (s.auto_max_depth if chosen == "direct+indirect"
+                                                                    else 2),
+             "camera": camera.model_dump(), "targets": targets or [], "metrics": metrics, "seed": s.seed}
+    writer.finish(arrays, attrs)
+    return metrics

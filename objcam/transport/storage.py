@@ -1,0 +1,263 @@
+"""On-disk transport matrices: one zarr v3 group per distinct camera, and ``index.json`` naming each target's.
+
+Transport artifact folder (``objcam/transport/``):
+    index.json      {"format": 1, "targets": {target name: group folder}, "groups": {group folder: [names]}}
+    cam0/           zarr v3 group (``zarr.json`` inside), one per distinct camera:
+        A               float32 (C, M, N), chunks (C, <= 32768 rows, 128 columns): column blocks can be computed
+                        and written independently. C = 1 when every albedo is grey (A holds the albedo), else 3
+                        (A_c = diag(rho_c) A' for direct light).
+        pixel_index     int64 (M,)   flat row * W' + col into the pooled (H', W') target image
+        texel_index     int64 (N,)   flat r * W_env + c into the (env_height, 2 env_height) envmap
+        directions      float32 (N, 3) texel centre directions (world, z up)
+        solid_angle     float32 (N,)  steradians
+        albedo          float32 (M, 3) albedo rendered, mean over the pixel's samples that hit a surface
+        unknown_albedo  bool (M,)    a sample of the pixel lands on a surface of unknown albedo (rendered as 1)
+        coverage        float32 (M,)  fraction of the pixel's samples that hit a surface (the rest see the envmap)
+        object_fraction float32 (M,)  fraction of the hitting samples that land on the object
+        attributes: image_shape, downsample, env_height, channels, model, samples, spp, max_depth, camera,
+                    targets, metrics
+Units: x is envmap radiance per texel (box texels); A x is pixel radiance.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from objcam.camera import Camera
+from objcam.envmap import EnvGrid
+
+FORMAT = 1
+INDEX = "index.json"
+ROW_CHUNK = 32768
+
+_META_ARRAYS = ("pixel_index", "texel_index", "directions", "solid_angle", "albedo", "unknown_albedo", "coverage",
+                "object_fraction")
+
+
+def _compressor():
+    from zarr.codecs import BloscCodec
+
+    return BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")
+
+
+class ColumnWriter:
+    """Streams kept columns of A into a zarr group, buffering whole column chunks.
+
+    The array is created with the largest possible width and shrunk by :meth:`finish`.
+    """
+
+    def __init__(self, folder: str | Path, channels: int, n_pixels: int, n_texels_max: int, chunk_columns: int = 128):
+        import zarr
+
+        self.folder = Path(folder)
+        self.group = zarr.open_group(str(self.folder), mode="w", zarr_format=3)
+        self.c, self.m = int(channels), int(n_pixels)
+        self.chunk = int(chunk_columns)
+        self.A = self.group.create_array("A", shape=(self.c, self.m, max(1, n_texels_max)), dtype="float32",
+                                         chunks=(self.c, max(1, min(self.m, ROW_CHUNK)), self.chunk),
+                                         compressors=_compressor(), fill_value=0.0)
+        self._buf: list[np.ndarray] = []
+        self._buf_n = 0
+        self.texels: list[np.ndarray] = []
+        self.norms: list[np.ndarray] = []
+        self.n = 0  # columns written
+
+    def append(self, texels: np.ndarray, cols: np.ndarray) -> None:
+        """Add columns (C, M, B) for flat texel indices ``texels`` (B,)."""
+        if cols.shape[2] == 0:
+            return
+        self.texels.append(np.asarray(texels, dtype=np.int64))
+        self.norms.append(np.sqrt(np.einsum("cmb,cmb->b", cols, cols, dtype=np.float64)))
+        self._buf.append(np.asarray(cols, dtype=np.float32))
+        self._buf_n += cols.shape[2]
+        if self._buf_n >= self.chunk:
+            self._flush(final=False)
+
+    def _flush(self, final: bool) -> None:
+        if not self._buf:
+            return
+        data = np.concatenate(self._buf, axis=2)
+        n_out = data.shape[2] if final else (data.shape[2] // self.chunk) * self.chunk
+        if n_out:
+            self.A[:, :, self.n : self.n + n_out] = data[:, :, :n_out]
+            self.n += n_out
+        rest = data[:, :, n_out:]
+        self._buf = [rest] if rest.shape[2] else []
+        self._buf_n = rest.shape[2]
+
+    def flush(self) -> None:
+        """Write every buffered column and shrink A to the columns written (no appends after this)."""
+        self._flush(final=True)
+        self.A.resize((self.c, self.m, self.n))
+
+    def finish(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
+        """Flush, then write the metadata arrays and the group's attributes."""
+        self.flush()
+        for name, arr in arrays.items():
+            arr = np.ascontiguousarray(arr)
+            chunks = tuple(max(1, n) for n in arr.shape) or None
+            a = self.group.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=chunks,
+                                        compressors=_compressor())
+            a[...] = arr
+        self.group.attrs.update(attrs)
+
+    @property
+    def texel_index(self) -> np.ndarray:
+        return np.concatenate(self.texels) if self.texels else np.zeros(0, np.int64)
+
+    @property
+    def column_norms(self) -> np.ndarray:
+        return np.concatenate(self.norms) if self.norms else np.zeros(0)
+
+
+def add_to_columns(folder: str | Path, delta_fn, chunk_columns: int | None = None, progress=None) -> None:
+    """In place: A[:, :, a:b] += delta_fn(a, b) (C, M, b - a), one column chunk at a time."""
+    import zarr
+
+    g = zarr.open_group(str(folder), mode="r+")
+    A = g["A"]
+    n = A.shape[2]
+    step = chunk_columns or A.chunks[2]
+    for a in range(0, n, step):
+        b = min(n, a + step)
+        A[:, :, a:b] = A[:, :, a:b] + delta_fn(a, b).astype(np.float32)
+        if progress is not None:
+            progress.update(b - a)
+
+
+def write_index(out: str | Path, mapping: dict[str, str]) -> None:
+    from objcam.image_io import atomic_write_text
+
+    groups: dict[str, list[str]] = {}
+    for name, folder in mapping.items():
+        groups.setdefault(folder, []).append(name)
+    atomic_write_text(Path(out) / INDEX, json.dumps({"format": FORMAT, "targets": mapping, "groups": groups},
+                                                    indent=2))
+
+
+def read_index(folder: str | Path) -> dict:
+    from objcam.errors import StageError
+
+    path = Path(folder) / INDEX
+    if not path.is_file():
+        raise StageError("transport artifact has no index.json", path, "rerun the transport stage")
+    return json.loads(path.read_text())
+
+
+@dataclass
+class Transport:
+    """A transport matrix and what its rows and columns mean (see the module docstring)."""
+
+    A: np.ndarray  # (C, M, N) float32
+    pixel_index: np.ndarray  # (M,)
+    image_shape: tuple[int, int]  # pooled (H', W')
+    downsample: int
+    texel_index: np.ndarray  # (N,)
+    env_height: int
+    directions: np.ndarray  # (N, 3)
+    solid_angle: np.ndarray  # (N,)
+    albedo: np.ndarray  # (M, 3)
+    unknown_albedo: np.ndarray  # (M,) bool
+    coverage: np.ndarray  # (M,)
+    object_fraction: np.ndarray  # (M,)
+    model: str
+    samples: int | None
+    spp: int | None
+    max_depth: int | None
+    camera: Camera
+    attrs: dict = field(default_factory=dict)
+
+    @property
+    def channels(self) -> int:
+        return self.A.shape[0]
+
+    @property
+    def n_pixels(self) -> int:
+        return self.A.shape[1]
+
+    @property
+    def n_texels(self) -> int:
+        return self.A.shape[2]
+
+    @property
+    def grid(self) -> EnvGrid:
+        return EnvGrid(self.env_height)
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """Pooled image (H', W', 3) of A x for x (N, 3) (or (N,): grey), zeros where no pixel is kept."""
+        y = self.predict_pixels(x)
+        img = np.zeros((self.image_shape[0] * self.image_shape[1], 3), np.float32)
+        img[self.pixel_index] = y
+        return img.reshape(self.image_shape[0], self.image_shape[1], 3)
+
+    def predict_pixels(self, x: np.ndarray) -> np.ndarray:
+        """(M, 3) A x at the kept pixels."""
+        x = np.asarray(x, dtype=np.float32)
+        if x.ndim == 1:
+            x = np.repeat(x[:, None], 3, axis=1)
+        if x.shape != (self.n_texels, 3):
+            raise ValueError(f"x must be ({self.n_texels}, 3), got {x.shape}")
+        if self.channels == 1:
+            return self.A[0] @ x
+        return np.stack([self.A[c] @ x[:, c] for c in range(3)], axis=1)
+
+    def x_from_envmap(self, env: np.ndarray) -> np.ndarray:
+        """(N, 3) kept texels of an envmap (env_height, 2 env_height, 3) in this grid."""
+        e = np.asarray(env).reshape(self.grid.n_texels, -1)
+        return e[self.texel_index].astype(np.float32)
+
+    def envmap_from_x(self, x: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """(env_height, 2 env_height, 3) envmap holding x at the kept texels and ``fill`` elsewhere."""
+        x = np.asarray(x, dtype=np.float32)
+        if x.ndim == 1:
+            x = np.repeat(x[:, None], 3, axis=1)
+        env = np.full((self.grid.n_texels, 3), fill, np.float32)
+        env[self.texel_index] = x
+        return env.reshape(self.env_height, 2 * self.env_height, 3)
+
+    def pixels_of(self, image: np.ndarray) -> np.ndarray:
+        """(M, C') values of a pooled image (H', W', C') at the kept pixels."""
+        img = np.asarray(image)
+        return img.reshape(self.image_shape[0] * self.image_shape[1], -1)[self.pixel_index]
+
+    def kept_mask(self) -> np.ndarray:
+        """(H', W') True at the kept pixels."""
+        m = np.zeros(self.image_shape[0] * self.image_shape[1], bool)
+        m[self.pixel_index] = True
+        return m.reshape(self.image_shape)
+
+    def rho_free(self) -> np.ndarray:
+        """A' = A / rho per pixel and channel where rho > 0 (0 elsewhere), shape (C, M, N)."""
+        rho = self.albedo.T[: self.channels] if self.channels == 3 else self.albedo.mean(axis=1)[None]
+        inv = np.where(rho > 0, 1.0 / np.maximum(rho, 1e-30), 0.0).astype(np.float32)
+        return self.A * inv[:, :, None]
+
+
+def load_group(folder: str | Path, load_A: bool = True) -> Transport:
+    """A Transport from one zarr group folder."""
+    import zarr
+
+    g = zarr.open_group(str(folder), mode="r")
+    at = dict(g.attrs)
+    arrays = {n: np.asarray(g[n][...]) for n in _META_ARRAYS}
+    A = np.asarray(g["A"][...]) if load_A else np.zeros((int(at["channels"]), 0, 0), np.float32)
+    return Transport(A=A, image_shape=tuple(at["image_shape"]), downsample=int(at["downsample"]),
+                     env_height=int(at["env_height"]), model=str(at["model"]), samples=at.get("samples"),
+                     spp=at.get("spp"), max_depth=at.get("max_depth"), camera=Camera.model_validate(at["camera"]),
+                     attrs=at, **arrays)
+
+
+def load_transport(folder: str | Path, target_name: str, load_A: bool = True) -> Transport:
+    """The transport matrix of target ``target_name`` from a transport artifact folder (A loaded fully)."""
+    from objcam.errors import StageError
+
+    index = read_index(folder)
+    sub = index["targets"].get(target_name)
+    if sub is None:
+        raise StageError(f"no transport matrix for target {target_name!r} (have {sorted(index['targets'])})",
+                         Path(folder) / INDEX, "rerun the transport stage after changing the targets")
+    return load_group(Path(folder) / sub, load_A=load_A)
