@@ -61,7 +61,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     scene = SceneArtifact.load(inputs.upstream["scene"])
     out = inputs.out
     per_target: dict[str, dict] = {}
-    gram_cache: dict[tuple, tuple] = {}
+    gram_cache: dict[tuple, np.ndarray] = {}
     t_all = time.perf_counter()
     for target in scene.targets:
         tr = load_transport(inputs.upstream["transport"], target.name)
@@ -75,6 +75,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         C = tr.A.shape[0]
         t0 = time.perf_counter()
         X, kkt, obj, iters = np.zeros((tr.A.shape[2], 3)), np.zeros(3), np.zeros(3), 0
+        grams = None
         with single_blas_thread():
             for c in range(C):
                 # one Gram matrix per (A, channel, usable pixels): shared by every channel of a grey A and by
@@ -82,7 +83,11 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                 key = (_transport_key(tr, target.name), c, hash(use.tobytes()))
                 Ac = tr.A[c][use]
                 if key not in gram_cache:
-                    G = solvers.gram(Ac)
+                    # the transport stage stored A^T A over all kept pixels; remove the few excluded rows
+                    grams = tr.gram() if grams is None else grams
+                    G = grams[c]
+                    if not use.all():
+                        G = G - solvers.gram(tr.A[c][~use])
                     ls_abs, lr_abs = solvers.absolute_weights(G, params.ls, params.lr)
                     D = solvers.difference_operator(grid, tr.texel_index)
                     gram_cache[key] = solvers.regularized_gram(G, D, ls_abs, lr_abs)

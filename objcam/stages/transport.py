@@ -59,7 +59,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     from objcam.transport.auto import estimate_relative_noise
     from objcam.transport.build import BuildSettings, build_camera
     from objcam.transport.geometry import SceneGeometry
-    from objcam.transport.storage import write_index
+    from objcam.transport.storage import write_gram, write_index
 
     t0 = time.perf_counter()
     art = SceneArtifact.load(inputs.upstream["scene"])
@@ -80,6 +80,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                  if params.model == "auto" else None)
         m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
                          targets=[t.name for t in targets], target_noise=noise)
+        m["gram_seconds"] = round(write_gram(inputs.out / sub), 3)
         per_cam.append(m)
         for t in targets:
             mapping[t.name] = sub

@@ -32,6 +32,7 @@ from objcam.envmap import EnvGrid
 
 FORMAT = 1
 INDEX = "index.json"
+GRAM = "gram.npy"  # (C, N, N) float64 A_c^T A_c, so solves skip the O(M N^2) product
 ROW_CHUNK = 32768
 
 _META_ARRAYS = ("pixel_index", "texel_index", "directions", "solid_angle", "albedo", "unknown_albedo", "coverage",
@@ -170,6 +171,7 @@ class Transport:
     max_depth: int | None
     camera: Camera
     attrs: dict = field(default_factory=dict)
+    folder: Path | None = None  # the zarr group this A was read from (identifies A across targets)
 
     @property
     def channels(self) -> int:
@@ -230,11 +232,40 @@ class Transport:
         m[self.pixel_index] = True
         return m.reshape(self.image_shape)
 
+    def gram(self) -> np.ndarray:
+        """(C, N, N) float64 A_c^T A_c over all kept pixels: read from ``gram.npy`` (written by the transport
+        stage, so a solve costs no O(M N^2) work), computed when absent."""
+        if self.folder is not None and (self.folder / GRAM).is_file():
+            return np.load(self.folder / GRAM)
+        from objcam.solvers import gram
+
+        return np.stack([gram(self.A[c]) for c in range(self.channels)])
+
     def rho_free(self) -> np.ndarray:
         """A' = A / rho per pixel and channel where rho > 0 (0 elsewhere), shape (C, M, N)."""
         rho = self.albedo.T[: self.channels] if self.channels == 3 else self.albedo.mean(axis=1)[None]
         inv = np.where(rho > 0, 1.0 / np.maximum(rho, 1e-30), 0.0).astype(np.float32)
         return self.A * inv[:, :, None]
+
+
+def write_gram(folder: str | Path) -> float:
+    """Store A_c^T A_c (C, N, N) float64 beside A as ``gram.npy``; returns the seconds it took."""
+    import time
+
+    from objcam.image_io import atomic_write_bytes
+    from objcam.solvers import gram
+    from objcam.threads import single_blas_thread
+
+    t0 = time.perf_counter()
+    tr = load_group(folder)
+    with single_blas_thread():
+        G = np.stack([gram(tr.A[c]) for c in range(tr.channels)])
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, G)
+    atomic_write_bytes(Path(folder) / GRAM, buf.getvalue())
+    return time.perf_counter() - t0
 
 
 def load_group(folder: str | Path, load_A: bool = True) -> Transport:
@@ -248,7 +279,7 @@ def load_group(folder: str | Path, load_A: bool = True) -> Transport:
     return Transport(A=A, image_shape=tuple(at["image_shape"]), downsample=int(at["downsample"]),
                      env_height=int(at["env_height"]), model=str(at["model"]), samples=at.get("samples"),
                      spp=at.get("spp"), max_depth=at.get("max_depth"), camera=Camera.model_validate(at["camera"]),
-                     attrs=at, **arrays)
+                     attrs=at, folder=Path(folder), **arrays)
 
 
 def load_transport(folder: str | Path, target_name: str, load_A: bool = True) -> Transport:
