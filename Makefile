@@ -16,14 +16,12 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
 	@PYTHON=$(PYTHON) bash scripts/setup.sh
 
-$(CAPTURE)/capture.toml: | $(STAMP)
-	$(OBJCAM) synth $(CAPTURE) $(DEMO_SYNTH_ARGS)
-
 demo: $(STAMP)
 	@[ -f demo/capture/capture.toml ] || $(OBJCAM) synth demo/capture $(DEMO_SYNTH_ARGS)
 	$(OBJCAM) run demo/capture $(ARGS)
 	$(OBJCAM) evaluate demo/capture --quiet
-	@echo "outputs: demo/capture/objcam/  (solve/<target>/envmap.exr and *.png, evaluate/metrics.json)"
+	@echo "outputs: demo/capture/objcam/solve/t0/ (envmap.exr, prediction.exr, residual.exr, *.png)"
+	@echo "         demo/capture/objcam/evaluate/ (metrics.json, t0/overview.png: target | truth | recovered)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q $(ARGS)

@@ -24,9 +24,13 @@ fi
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv || die "could not create .venv (on Debian: apt-get install python3-venv)"
 fi
-.venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
-.venv/bin/python -m pip install -q -r requirements.lock 2>&1 | grep -v '^WARNING: Location' || true
-.venv/bin/python -m pip install -q --no-deps -e . 2>&1 | grep -v '^WARNING: Location' || true
+LOG=.venv/objcam-pip.log
+.venv/bin/python -m pip install -q --upgrade pip >"$LOG" 2>&1 || true
+echo "objcam setup: installing pinned packages into .venv (log: $LOG)"
+.venv/bin/python -m pip install -q -r requirements.lock >>"$LOG" 2>&1 \
+  || { tail -n 20 "$LOG" >&2; die "pip could not install requirements.lock (log: $LOG)"; }
+.venv/bin/python -m pip install -q --no-deps -e . >>"$LOG" 2>&1 \
+  || { tail -n 20 "$LOG" >&2; die "pip could not install objcam itself (log: $LOG)"; }
 .venv/bin/python - <<'PY' || die "installed packages do not import; see the message above"
 import mitsuba as mi, numpy, scipy, pycolmap, cv2, rawpy, pymeshlab, xatlas, OpenImageIO, zarr, objcam
 v = "llvm_ad_rgb" if "llvm_ad_rgb" in mi.variants() else "scalar_rgb"
