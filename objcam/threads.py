@@ -4,11 +4,18 @@ L-BFGS-B up to 30x slower and erratic on the 2-core machines objcam targets)."""
 from __future__ import annotations
 
 from contextlib import contextmanager
+from functools import lru_cache
+
+
+@lru_cache(maxsize=1)
+def _controller():
+    # building the controller scans the loaded libraries (~5 ms): do it once, not on every solve
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 @contextmanager
 def single_blas_thread():
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _controller().limit(limits=1, user_api="blas"):
         yield

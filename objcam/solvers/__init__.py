@@ -6,6 +6,8 @@
 - :mod:`.problem`: :func:`solve_envmap`, from (A, Y) to x in one call.
 """
 
+from objcam.solvers.autoreg import choose_weights
+from objcam.solvers.joint import JointResult, solve_joint
 from objcam.solvers.nnls import SolveResult, kkt_residual, objective, solve_exact
 from objcam.solvers.paper import solve_paper
 from objcam.solvers.problem import GramSystem, build_system, solve_envmap
@@ -21,6 +23,9 @@ from objcam.solvers.regularization import (
 )
 
 __all__ = [
+    "JointResult",
+    "choose_weights",
+    "solve_joint",
     "DEFAULT_LR_REL",
     "DEFAULT_LS_REL",
     "GramSystem",

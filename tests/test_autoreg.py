@@ -1,0 +1,150 @@
+"""Automatic regularisation weights (objcam.solvers.autoreg): the fast generalised-eigen evaluation against brute
+force, GCV / discrepancy / L-curve against the weight that minimises the true error, bad inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from objcam.envmap import EnvGrid
+from objcam.solvers import DEFAULT_LR_REL, data_scale, difference_operator, gram, rhs, solve_envmap
+from objcam.solvers.autoreg import choose_weights, gcv_brute_force, spectral_system
+
+
+def toy(height=8, m_side=24, sun=0.0, noise=0.02, seed=0):
+    """Ground-plane pixels under three spheres, lit by the upper hemisphere of a sky gradient (+ an optional
+    one-texel sun ``sun`` x the mean). Returns grid, kept texels, A (M, N) float32, Y (M, 3), truth x (N, 3) and
+    the noise standard deviation of a pixel value."""
+    rng = np.random.default_rng(seed)
+    grid = EnvGrid(height)
+    dirs = grid.directions().reshape(-1, 3)
+    omega = grid.solid_angles().ravel()
+    keep = np.flatnonzero(dirs[:, 2] > 0)
+    dk, ok = dirs[keep], omega[keep]
+    u = np.linspace(-1.5, 1.5, m_side)
+    px, py = np.meshgrid(u, u)
+    P = np.stack([px.ravel(), py.ravel(), np.zeros(px.size)], 1)
+    vis = np.ones((P.shape[0], dk.shape[0]), bool)
+    for c, r in [((0.0, 0.0, 0.5), 0.4), ((0.6, -0.3, 0.25), 0.2), ((-0.5, 0.6, 0.8), 0.15)]:
+        oc = np.asarray(c)[None, :] - P
+        tca = oc @ dk.T
+        d2 = (oc**2).sum(1)[:, None] - tca**2
+        vis &= ~((tca > 0) & (d2 < r * r))
+    A = (vis * (dk[:, 2] * ok)[None, :] / np.pi).astype(np.float32)
+    theta, phi = grid.centres()
+    sky = (0.5 + 0.5 * np.cos(theta)) * (1 + 0.3 * np.cos(phi))
+    truth = np.stack([sky, 0.9 * sky, 1.2 * sky], -1)
+    mean = truth.reshape(-1, 3)[keep].mean()
+    truth[height // 4, grid.width // 3] += sun * mean * np.array([1.0, 0.95, 0.8])
+    x = truth.reshape(-1, 3)[keep]
+    Y = A.astype(np.float64) @ x
+    sigma = noise * Y.mean()
+    Y = Y + sigma * rng.standard_normal(Y.shape)
+    return grid, keep, A, Y, x, sigma
+
+
+def true_error_curve(grid, keep, A, Y, x, ls_grid):
+    """Relative error of the final (non-negative) solve against the truth for every relative ls."""
+    return np.array([np.linalg.norm(solve_envmap(A, Y, grid, keep, ls=v).x - x) / np.linalg.norm(x)
+                     for v in ls_grid])
+
+
+CASES = [dict(sun=0.0, noise=0.02, seed=0), dict(sun=0.0, noise=0.05, seed=1), dict(sun=20.0, noise=0.02, seed=2),
+         dict(sun=100.0, noise=0.01, seed=3)]
+
+
+@pytest.fixture(scope="module", params=range(len(CASES)), ids=["sky2%", "sky5%", "sun20", "sun100"])
+def case(request):
+    grid, keep, A, Y, x, sigma = toy(**CASES[request.param])
+    ls_grid = np.logspace(-7, 2, 37)
+    err = true_error_curve(grid, keep, A, Y, x, ls_grid)
+    return grid, keep, A, Y, x, sigma, ls_grid[int(np.argmin(err))], err, ls_grid
+
+
+def test_fast_evaluation_matches_brute_force():
+    grid, keep, A, Y, x, sigma = toy(sun=20.0)
+    K = gram(A)
+    B = rhs(A, Y)
+    yTy = np.einsum("mk,mk->k", Y, Y)
+    D = difference_operator(grid, keep)
+    Lmat = (D.T @ D).toarray()
+    s = data_scale(K)
+    lr = DEFAULT_LR_REL * s
+    sysm = spectral_system(K, Lmat, B, yTy, A.shape[0], lr)
+    for ls_rel in (1e-6, 1e-3, 1e-1, 10.0):
+        ls = ls_rel * s
+        ev = sysm.evaluate(ls)
+        assert ev["gcv"] == pytest.approx(gcv_brute_force(K, Lmat, B, yTy, A.shape[0], ls, lr), rel=1e-8)
+        Q = K + ls * Lmat + lr * np.eye(K.shape[0])
+        X = np.linalg.solve(Q, B)
+        R = A.astype(np.float64) @ X - Y
+        assert np.allclose(ev["residual"], np.sum(R * R, axis=0), rtol=1e-8)
+        assert ev["trace"] == pytest.approx(np.trace(np.linalg.solve(Q, K)), rel=1e-8)
+        assert np.allclose(ev["dx2"], np.sum((D @ X) ** 2, axis=0), rtol=1e-8)
+        assert np.allclose(ev["x2"], np.sum(X * X, axis=0), rtol=1e-8)
+        assert np.allclose(sysm.solution(ls), X, rtol=1e-8, atol=1e-10 * np.abs(X).max())
+
+
+def test_gcv_picks_a_weight_near_the_true_optimum(case):
+    grid, keep, A, Y, x, sigma, best, err, ls_grid = case
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="gcv")
+    assert lr == DEFAULT_LR_REL and info["rule"] == "gcv"
+    assert best / 4 <= ls <= best * 4
+    # the error at the chosen weight is close to the best achievable
+    e = np.linalg.norm(solve_envmap(A, Y, grid, keep, ls=ls, lr=lr).x - x) / np.linalg.norm(x)
+    assert e <= 1.25 * err.min()
+    # the chosen weight minimises the criterion over the grid
+    assert info["gcv"].min() >= info["per_lr"][0]["gcv"].min() - 1e-15
+    assert "ignored" in info["nonnegativity"]
+
+
+def test_discrepancy_principle(case):
+    grid, keep, A, Y, x, sigma, best, err, ls_grid = case
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma)
+    assert best / 10 <= ls <= best * 10
+    # the chosen ls puts the (unconstrained) residual at the target: the largest ls that meets it
+    K = gram(A)
+    s = data_scale(K)
+    D = difference_operator(grid, keep)
+    sysm = spectral_system(K, (D.T @ D).toarray(), rhs(A, Y), np.einsum("mk,mk->k", Y, Y), A.shape[0], lr * s)
+    target = A.shape[0] * Y.shape[1] * sigma**2
+    assert info["target_residual"] == pytest.approx(target)
+    assert sysm.evaluate(ls * s)["residual"].sum() <= target
+    assert sysm.evaluate(ls * s * 1.001)["residual"].sum() > target
+
+
+def test_lcurve_corner(case):
+    grid, keep, A, Y, x, sigma, best, err, ls_grid = case
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="lcurve")
+    assert best / 10 <= ls <= best * 10
+    assert np.isfinite(info["lcurve_curvature"][1:-1]).all()
+
+
+def test_two_dimensional_search_and_relative_units():
+    grid, keep, A, Y, x, sigma = toy(sun=20.0)
+    lr_grid = [1e-6, 1e-4, 1e-2]
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="gcv", lr_grid=lr_grid)
+    assert lr in lr_grid and len(info["per_lr"]) == 3
+    best_each = [min(p["gcv"]) for p in info["per_lr"]]
+    assert min(info["gcv"]) == pytest.approx(min(best_each))
+    # relative weights: scaling A (and so Y) by 10 leaves them unchanged
+    ls2, lr2, _ = choose_weights(10 * A, 10 * Y, grid, keep, rule="gcv")
+    ls1, lr1, _ = choose_weights(A, Y, grid, keep, rule="gcv")
+    assert ls2 == pytest.approx(ls1, rel=1e-6) and lr2 == lr1
+
+
+def test_bad_inputs():
+    grid, keep, A, Y, x, sigma = toy(m_side=10)
+    with pytest.raises(ValueError, match="no valid pixels"):
+        choose_weights(A[:0], Y[:0], grid, keep)
+    with pytest.raises(ValueError, match="sigma"):
+        choose_weights(A, Y, grid, keep, rule="discrepancy")
+    with pytest.raises(ValueError, match="rule"):
+        choose_weights(A, Y, grid, keep, rule="aic")
+    with pytest.raises(ValueError, match="lr"):
+        choose_weights(A, Y, grid, keep, lr=0.0)
+    with pytest.raises(ValueError, match="gcv"):
+        choose_weights(A, Y, grid, keep, rule="lcurve", lr_grid=[1e-4, 1e-3])
+    # a noise level far too small: no ls meets the discrepancy, said so
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma * 1e-3)
+    assert any("no ls" in n for n in info["notes"])
