@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-HDRIS = ("forest", "courtyard", "sunset", "city", "sunrise")
+HDRIS = ("forest", "courtyard", "city", "sunrise")
 SETTINGS_FULL = [
     ("direct K=1", {"model": "direct", "samples": 1, "subpixel_samples": 8}),
     ("direct K=4", {"model": "direct", "samples": 4, "subpixel_samples": 32}),
     ("direct K=16", {"model": "direct", "samples": 16, "subpixel_samples": 64}),
     ("auto", {"model": "auto"}),
-    ("path 16 spp", {"model": "path", "path_spp": 16}),
-    ("path 64 spp", {"model": "path", "path_spp": 64}),
+    ("path 8 spp", {"model": "path", "path_spp": 8}),
+    ("path 32 spp", {"model": "path", "path_spp": 32}),
 ]
 SETTINGS_QUICK = SETTINGS_FULL[:4]
 METHODS = ("exact", "paper")
@@ -154,8 +154,8 @@ def main(argv=None) -> int:
 
     hdris = [h for h in args.hdris.split(",") if h]
     HDRIS_USED[:] = hdris
-    target_spp = args.target_spp or (256 if args.quick else 4096)
-    ref_spp = args.ref_spp or (256 if args.quick else 2048)
+    target_spp = args.target_spp or (256 if args.quick else 2048)
+    ref_spp = args.ref_spp or (256 if args.quick else 1024)
     settings = SETTINGS_QUICK if args.quick else SETTINGS_FULL
     args.out.mkdir(parents=True, exist_ok=True)
     log(f"bench: targets {', '.join(hdris)} at {target_spp} spp; settings: {', '.join(s for s, _ in settings)}")
