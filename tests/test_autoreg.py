@@ -9,6 +9,7 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.solvers import DEFAULT_LR_REL, data_scale, difference_operator, gram, rhs, solve_envmap
 from objcam.solvers.autoreg import choose_weights, gcv_brute_force, spectral_system
+from tests.toy_scenes import sky_with_sun, sphere_shadow_transport
 
 
 def toy(height=8, m_side=24, sun=0.0, noise=0.02, seed=0):
@@ -17,25 +18,8 @@ def toy(height=8, m_side=24, sun=0.0, noise=0.02, seed=0):
     the noise standard deviation of a pixel value."""
     rng = np.random.default_rng(seed)
     grid = EnvGrid(height)
-    dirs = grid.directions().reshape(-1, 3)
-    omega = grid.solid_angles().ravel()
-    keep = np.flatnonzero(dirs[:, 2] > 0)
-    dk, ok = dirs[keep], omega[keep]
-    u = np.linspace(-1.5, 1.5, m_side)
-    px, py = np.meshgrid(u, u)
-    P = np.stack([px.ravel(), py.ravel(), np.zeros(px.size)], 1)
-    vis = np.ones((P.shape[0], dk.shape[0]), bool)
-    for c, r in [((0.0, 0.0, 0.5), 0.4), ((0.6, -0.3, 0.25), 0.2), ((-0.5, 0.6, 0.8), 0.15)]:
-        oc = np.asarray(c)[None, :] - P
-        tca = oc @ dk.T
-        d2 = (oc**2).sum(1)[:, None] - tca**2
-        vis &= ~((tca > 0) & (d2 < r * r))
-    A = (vis * (dk[:, 2] * ok)[None, :] / np.pi).astype(np.float32)
-    theta, phi = grid.centres()
-    sky = (0.5 + 0.5 * np.cos(theta)) * (1 + 0.3 * np.cos(phi))
-    truth = np.stack([sky, 0.9 * sky, 1.2 * sky], -1)
-    mean = truth.reshape(-1, 3)[keep].mean()
-    truth[height // 4, grid.width // 3] += sun * mean * np.array([1.0, 0.95, 0.8])
+    keep, A = sphere_shadow_transport(grid, m_side)
+    truth = sky_with_sun(grid, keep, sun)
     x = truth.reshape(-1, 3)[keep]
     Y = A.astype(np.float64) @ x
     sigma = noise * Y.mean()

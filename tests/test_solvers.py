@@ -25,6 +25,7 @@ from objcam.solvers import (
     solve_paper,
 )
 from objcam.solvers import regularization
+from tests.toy_scenes import sky_with_sun, sphere_shadow_transport
 
 KKT_TOL = 1e-8
 
@@ -37,25 +38,8 @@ def shadow_problem(height=16, m_side=30, sun=1000.0, noise=0.01, seed=0):
     """
     rng = np.random.default_rng(seed)
     grid = EnvGrid(height)
-    dirs = grid.directions().reshape(-1, 3)
-    omega = grid.solid_angles().ravel()
-    keep = np.flatnonzero(dirs[:, 2] > 0)
-    dk, ok = dirs[keep], omega[keep]
-    u = np.linspace(-1.5, 1.5, m_side)
-    px, py = np.meshgrid(u, u)
-    P = np.stack([px.ravel(), py.ravel(), np.zeros(px.size)], 1)
-    vis = np.ones((P.shape[0], dk.shape[0]), bool)
-    for c, r in [((0.0, 0.0, 0.5), 0.4), ((0.6, -0.3, 0.25), 0.2), ((-0.5, 0.6, 0.8), 0.15)]:
-        oc = np.asarray(c)[None, :] - P
-        tca = oc @ dk.T
-        d2 = (oc**2).sum(1)[:, None] - tca**2
-        vis &= ~((tca > 0) & (d2 < r * r))
-    A = (vis * (dk[:, 2] * ok)[None, :] / np.pi).astype(np.float32)
-    theta, phi = grid.centres()
-    sky = (0.5 + 0.5 * np.cos(theta)) * (1 + 0.3 * np.cos(phi))
-    truth = np.stack([sky, 0.9 * sky, 1.2 * sky], -1)
-    mean = truth.reshape(-1, 3)[keep].mean()
-    truth[height // 4, grid.width // 3] += sun * mean * np.array([1.0, 0.95, 0.8])
+    keep, A = sphere_shadow_transport(grid, m_side)
+    truth = sky_with_sun(grid, keep, sun)
     Y = A.astype(np.float64) @ truth.reshape(-1, 3)[keep]
     Y += noise * Y.mean() * rng.standard_normal(Y.shape)
     return grid, keep, A, Y.astype(np.float32), truth

@@ -1,0 +1,40 @@
+"""Small renderer-free scenes shared by the solver tests: ground-plane pixels under occluding spheres."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from objcam.envmap import EnvGrid
+
+SPHERES = [((0.0, 0.0, 0.5), 0.4), ((0.6, -0.3, 0.25), 0.2), ((-0.5, 0.6, 0.8), 0.15)]
+
+
+def sphere_shadow_transport(grid: EnvGrid, m_side: int, spheres=SPHERES) -> tuple[np.ndarray, np.ndarray]:
+    """Kept texels (upper hemisphere, flat indices (N,)) and A (M, N) float32 for an m_side x m_side grid of
+    ground points on [-1.5, 1.5]^2 (A = visibility x cos x solid angle / pi: albedo 1) under
+    ``spheres`` ((centre, radius) pairs)."""
+    dirs = grid.directions().reshape(-1, 3)
+    omega = grid.solid_angles().ravel()
+    keep = np.flatnonzero(dirs[:, 2] > 0)
+    dk, ok = dirs[keep], omega[keep]
+    u = np.linspace(-1.5, 1.5, m_side)
+    px, py = np.meshgrid(u, u)
+    P = np.stack([px.ravel(), py.ravel(), np.zeros(px.size)], 1)
+    vis = np.ones((P.shape[0], dk.shape[0]), bool)
+    for c, r in spheres:
+        oc = np.asarray(c)[None, :] - P
+        tca = oc @ dk.T
+        d2 = (oc**2).sum(1)[:, None] - tca**2
+        vis &= ~((tca > 0) & (d2 < r * r))
+    A = (vis * (dk[:, 2] * ok)[None, :] / np.pi).astype(np.float32)
+    return keep, A
+
+
+def sky_with_sun(grid: EnvGrid, keep: np.ndarray, sun: float) -> np.ndarray:
+    """(H, W, 3) sky gradient plus a one-texel sun of ``sun`` x the mean sky radiance over the kept texels."""
+    theta, phi = grid.centres()
+    sky = (0.5 + 0.5 * np.cos(theta)) * (1 + 0.3 * np.cos(phi))
+    truth = np.stack([sky, 0.9 * sky, 1.2 * sky], -1)
+    mean = truth.reshape(-1, 3)[keep].mean()
+    truth[grid.height // 4, grid.width // 3] += sun * mean * np.array([1.0, 0.95, 0.8])
+    return truth
