@@ -8,7 +8,7 @@ CAPTURE ?= demo/capture
 ARGS   ?=
 DEMO_SYNTH_ARGS ?= --object bunny --envmap forest
 
-STAGES := scene transport solve evaluate
+STAGES := scene transport solve evaluate analysis
 
 .PHONY: setup demo test bench status run clean-demo $(STAGES)
 
