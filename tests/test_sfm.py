@@ -1,0 +1,257 @@
+"""objcam.sfm: the printed board, the synthetic ring of views, SfM + board alignment, and bad inputs.
+
+One small synthetic capture (11 views at 320 x 240, 16 spp: 10 ring views and one, saved as linear EXR, playing a
+target image) is rendered once per session and reused.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from objcam.camera import Camera, look_at
+from objcam.errors import InputError
+from objcam.sfm.align import Similarity, camera_difference, objcam_camera, pnp_camera, umeyama
+from objcam.sfm.board import (BoardSpec, board_points_world, board_texture, detect, read_display_image,
+                              valid_corner_ids, world_points_array)
+from objcam.synth_views import ViewRingParams, render_views
+
+SMALL = dict(n_views=11, width=320, height=240, spp=16, max_depth=2, distance=0.5, fov_deg=60.0,
+             elevations_deg=[35.0, 55.0])
+
+
+@pytest.fixture(scope="session")
+def small_capture(tmp_path_factory):
+    """(views folder, {stem: true Camera}, params)."""
+    root = tmp_path_factory.mktemp("sfm_capture")
+    params = ViewRingParams(**SMALL)
+    res = render_views(root / "views", params, camera_dir=root / "truth")
+    return root / "views", {p.stem: cam for p, cam in res}, params
+
+
+@pytest.fixture(scope="session")
+def frontend_run(small_capture, tmp_path_factory):
+    """The front end on 10 views + 1 target (the last view, as a linear EXR like a real target image)."""
+    import cv2
+
+    from objcam.image_io import write_exr
+    from objcam.sfm.frontend import FrontendOptions, estimate_cameras
+
+    views, truth, params = small_capture
+    work = tmp_path_factory.mktemp("sfm_work")
+    pngs = sorted(views.glob("*.png"))
+    target = work.parent / "target_t0.exr"
+    png = cv2.imread(str(pngs[-1]), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+    write_exr(target, png**2.2)
+    result = estimate_cameras(work, pngs[:-1], targets={"t0": target}, options=FrontendOptions(board=params.board))
+    return work, result, truth, pngs[-1].stem
+
+
+# ------------------------------------------------------------------------------------------------------ board
+
+
+def test_board_layout_and_texture():
+    spec = BoardSpec()
+    ids = valid_corner_ids(spec)
+    assert len(ids) == 48 and len(board_points_world(spec)) == 48
+    tex = board_texture(spec, 2000.0)
+    n = tex.image.shape[0]
+    assert tex.image.shape == (n, n) and tex.extent == pytest.approx(n / tex.px_per_m)
+    assert tex.image.min() == pytest.approx(0.05) and tex.image.max() == pytest.approx(0.8)
+    # the blank centre is paper white: no ink within the centre block (object and shadows stand on plain paper)
+    cols, rows = spec.blank_squares()
+    x = (np.arange(n) + 0.5) / tex.px_per_m - tex.extent / 2  # texel centres, metres (column -> +x)
+    y = tex.extent / 2 - (np.arange(n) + 0.5) / tex.px_per_m  # row -> -y
+    w, h = spec.size
+    in_x = (x > cols.start * spec.square_length - w / 2) & (x < cols.stop * spec.square_length - w / 2)
+    in_y = (y < h / 2 - rows.start * spec.square_length) & (y > h / 2 - rows.stop * spec.square_length)
+    assert np.all(tex.image[np.ix_(in_y, in_x)] == pytest.approx(0.8))
+    # corners detected in the texture itself sit exactly at board_points_world (make_plane's UV convention)
+    det_ids, uv = detect(tex.image / 0.8, spec)
+    assert len(det_ids) == 48
+    xy = np.stack([-tex.extent / 2 + (uv[:, 0] + 0.5) / tex.px_per_m,
+                   tex.extent / 2 - (uv[:, 1] + 0.5) / tex.px_per_m], 1)
+    assert np.abs(xy - world_points_array(spec, det_ids)[:, :2]).max() < 0.02 / tex.px_per_m
+
+
+def test_board_spec_validation():
+    with pytest.raises(ValueError):
+        BoardSpec(blank_x=6)  # parity
+    with pytest.raises(ValueError):
+        BoardSpec(marker_length=0.03)
+    with pytest.raises(ValueError):
+        BoardSpec(dictionary="DICT_4X4_50")  # 58 markers do not fit
+
+
+def test_rendered_corners_match_projection(small_capture):
+    views, truth, params = small_capture
+    errs = []
+    for stem in truth:
+        ids, uv = detect(read_display_image(views / f"{stem}.png"), params.board)
+        assert len(ids) >= 12, stem
+        proj = truth[stem].project(world_points_array(params.board, ids))
+        errs.append(np.linalg.norm(uv - proj, axis=1))
+    e = np.concatenate(errs)
+    # 16 spp renders are noisy (~5% per pixel) and the squares ~10-20 px: measured median 0.20 px, mean 0.26 px
+    # (0.10 px at 800 x 600, 32 spp)
+    assert np.median(e) < 0.3 and e.mean() < 0.35, (np.median(e), e.mean())
+
+
+def test_pnp_cross_check(small_capture):
+    views, truth, params = small_capture
+    stem = next(iter(truth))
+    r = pnp_camera(views / f"{stem}.png", params.board, truth[stem])
+    assert r is not None and r.rms_px < 0.5
+    d, a = camera_difference(r.camera, truth[stem])
+    assert d < 0.005 and a < 0.6
+
+
+# --------------------------------------------------------------------------------------------------- umeyama
+
+
+@pytest.mark.parametrize("coplanar", [False, True])
+def test_umeyama_recovers_similarity(coplanar):
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(30, 3))
+    if coplanar:
+        src[:, 2] = 0.0
+    true = Similarity(0.37, Rotation.from_rotvec([0.3, -1.2, 2.0]).as_matrix(), np.array([0.1, -2.0, 0.5]))
+    est = umeyama(src, true.apply(src))
+    assert est.scale == pytest.approx(true.scale, rel=1e-12)
+    assert np.allclose(est.R, true.R, atol=1e-12) and np.allclose(est.t, true.t, atol=1e-12)
+    assert np.linalg.det(est.R) == pytest.approx(1.0)
+    assert np.allclose(est.inverse().apply(true.apply(src)), src, atol=1e-12)
+    rigid = umeyama(src, Similarity(1.0, true.R, true.t).apply(src), with_scale=False)
+    assert rigid.scale == 1.0 and np.allclose(rigid.R, true.R, atol=1e-12)
+
+
+def test_colmap_conversion_and_transform():
+    """objcam cx = COLMAP cx - 0.5, and the similarity applied by hand equals pycolmap's Reconstruction.transform."""
+    import pycolmap
+    from scipy.spatial.transform import Rotation
+
+    cam = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 300.0, 320, 240)
+    cam.params = [300.0, 301.0, 160.0, 120.0]
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(cam)
+    wfc = look_at(np.array([0.3, -0.2, 0.4]), np.zeros(3))
+    cfw = np.linalg.inv(wfc)[:3]
+    rec.add_image_with_trivial_frame(pycolmap.Image(name="a.png", keypoints=np.zeros((0, 2)), camera_id=1,
+                                                    image_id=1), pycolmap.Rigid3d(cfw))
+    c0 = objcam_camera(rec.cameras[1], cfw)
+    assert (c0.cx, c0.cy, c0.fx, c0.fy) == (159.5, 119.5, 300.0, 301.0)
+    assert np.allclose(c0.matrix, wfc, atol=1e-9)
+    sim = Similarity(2.5, Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix(), np.array([1.0, 2.0, 3.0]))
+    by_hand = objcam_camera(rec.cameras[1], cfw, sim)
+    rec.transform(sim.to_pycolmap())
+    img = rec.images[1]
+    after = objcam_camera(rec.cameras[1], np.asarray(img.cam_from_world().matrix()))
+    assert np.allclose(by_hand.matrix, after.matrix, atol=1e-9)
+    assert np.allclose(by_hand.centre, sim.apply(c0.centre), atol=1e-9)
+
+
+# -------------------------------------------------------------------------------------------- the front end
+
+
+def test_frontend_small_capture(frontend_run):
+    import pycolmap
+
+    work, result, truth, target_stem = frontend_run
+    truth = dict(truth)
+    true_target = truth.pop(target_stem)
+    assert len(result.views) == len(truth)  # every view registered
+    d = np.array([camera_difference(result.views[k], truth[k]) for k in truth])
+    centre_mm, rot_deg = d[:, 0] * 1000, d[:, 1]
+    # 320 x 240 at 16 spp: board corners ~0.2-0.3 px, so ~1-2 mm and ~0.2 degree (measured 1.6 mm / 2.9 mm max,
+    # 0.18 / 0.33 degree; at 24 views 800 x 600, 32 spp: 0.24 mm, 0.02 degree: python -m objcam.sfm.bench)
+    assert centre_mm.mean() < 2.5 and centre_mm.max() < 6.0, centre_mm
+    assert rot_deg.mean() < 0.3 and rot_deg.max() < 0.7, rot_deg
+    k = next(iter(truth))
+    assert result.views[k].cx == truth[k].cx and result.views[k].cy == truth[k].cy  # the +-0.5 convention
+    assert abs(result.views[k].fx / truth[k].fx - 1) < 0.01
+    # the aligned model on disk, readable by COLMAP tools, in metres
+    # the target: registered with its own camera, checked against the board-only PnP
+    dt, at = camera_difference(result.targets["t0"], true_target)
+    assert dt < 0.004 and at < 0.4, (dt, at)  # measured 1.5 mm, 0.12 degree
+    assert result.targets["t0"].cx == true_target.cx
+    assert "t0" in result.target_pnp and result.target_pnp["t0"]["centre_mm"] < 6.0
+    assert (work / "cameras" / "targets" / "t0.json").is_file()
+    rec = pycolmap.Reconstruction(str(work / "sparse" / "0"))
+    assert rec.num_reg_images() == len(truth) + 1
+    assert {p.name for p in (work / "sparse" / "0").iterdir()} >= {"cameras.bin", "images.bin", "points3D.bin"}
+    cam = Camera.load(work / "cameras" / "views" / f"{k}.json")
+    assert np.allclose(cam.matrix, result.views[k].matrix)
+    report = json.loads((work / "report.json").read_text())
+    assert report["alignment"]["corner_rms_mm"] < 1.5 and report["alignment"]["plane_rms_mm"] < 1.5
+    names = [c["name"] for c in report["checks"]]
+    assert "views registered" in names and "board residual" in names
+    assert {c.name: c.grade for c in result.checks}["views registered"] == "green"
+
+
+def test_grading_red_has_fix():
+    from objcam.sfm.report import format_checks, grade_checks, worst
+
+    checks = grade_checks(n_views=24, views_registered=7, targets=["t0"], targets_registered=[],
+                          mean_reprojection_px=0.4, views_with_board=7, board_corner_rms_mm=0.3,
+                          board_plane_rms_mm=0.2, board_reprojection_px=0.3)
+    assert worst(checks) == "red"
+    text = format_checks(checks)
+    assert "only 7/24 views registered: add views with more overlap" in text
+    assert "not registered: t0" in text
+    for c in checks:
+        assert (c.fix is None) == (c.grade == "green")
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+
+
+def test_too_few_views(small_capture, tmp_path):
+    from objcam.sfm.frontend import estimate_cameras
+
+    views, truth, _ = small_capture
+    with pytest.raises(InputError) as e:
+        estimate_cameras(tmp_path / "w", sorted(views.glob("*.png"))[:2])
+    msg = str(e.value)
+    assert "\n" not in msg and str(views) in msg and "at least" in msg
+
+
+def _random_photos(folder, n, seed=0):
+    """Photos of something textured with no board in them."""
+    import cv2
+
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        img = np.full((240, 320, 3), 200, np.uint8)
+        for _ in range(40):
+            c = tuple(int(v) for v in rng.integers(0, 255, 3))
+            cv2.circle(img, (int(rng.integers(0, 320)), int(rng.integers(0, 240))), int(rng.integers(3, 30)), c, -1)
+        cv2.imwrite(str(folder / f"p{i:02d}.png"), img)
+    return sorted(folder.glob("*.png"))
+
+
+def test_no_board_in_views(tmp_path):
+    from objcam.sfm.frontend import estimate_cameras
+
+    photos = _random_photos(tmp_path / "photos", 8)
+    with pytest.raises(InputError) as e:
+        estimate_cameras(tmp_path / "w", photos)
+    msg = str(e.value)
+    assert "\n" not in msg and str(tmp_path / "photos") in msg and "board was found in 0 of the 8 views" in msg
+    assert "fix:" in msg
+
+
+def test_sfm_registers_too_few(tmp_path):
+    from objcam.sfm.colmap import SfmOptions, prepare_images, run_sfm
+
+    photos = _random_photos(tmp_path / "photos", 4, seed=1)  # unrelated pictures: nothing to match
+    groups = prepare_images(tmp_path / "images", {"views": photos})
+    with pytest.raises(InputError) as e:
+        run_sfm(tmp_path / "w", tmp_path / "images", groups, options=SfmOptions(max_num_features=500),
+                error_path=tmp_path / "photos")
+    msg = str(e.value)
+    assert "\n" not in msg and str(tmp_path / "photos") in msg and "registered" in msg and "fix:" in msg
