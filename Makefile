@@ -8,7 +8,7 @@ CAPTURE ?= demo/capture
 ARGS   ?=
 DEMO_SYNTH_ARGS ?= --object bunny --envmap forest
 
-STAGES := scene transport solve evaluate analysis
+STAGES := scene transport solve evaluate analysis report
 
 .PHONY: setup demo test bench status run clean-demo $(STAGES)
 
@@ -20,6 +20,7 @@ demo: $(STAMP)
 	@[ -f demo/capture/capture.toml ] || $(OBJCAM) synth demo/capture $(DEMO_SYNTH_ARGS)
 	$(OBJCAM) run demo/capture $(ARGS)
 	$(OBJCAM) evaluate demo/capture --quiet
+	@echo "report:  demo/capture/objcam/report/index.html (open it in a browser)"
 	@echo "outputs: demo/capture/objcam/solve/t0/ (envmap.exr, prediction.exr, residual.exr, *.png)"
 	@echo "         demo/capture/objcam/evaluate/ (metrics.json, t0/overview.png: target | truth | recovered)"
 

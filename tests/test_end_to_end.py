@@ -65,9 +65,9 @@ def test_solve_is_exact_and_fits_the_image(capture):
 def test_second_run_is_cached_and_status_done(capture, capsys):
     assert main(["run", str(capture), "--quiet", "--set", "transport.model=direct"]) == 0
     out = capsys.readouterr().out
-    assert out.count("skipped (unchanged)") == 5
+    assert out.count("skipped (unchanged)") == 6
     assert main(["status", str(capture), "--set", "transport.model=direct"]) == 0
-    assert capsys.readouterr().out.count("done") >= 5
+    assert capsys.readouterr().out.count("done") >= 6
 
 
 def test_exact_never_worse_than_paper(capture, tmp_path):

@@ -7,7 +7,7 @@ from functools import lru_cache
 from types import ModuleType
 
 # Topological order. Each name is a module in objcam.stages.
-STAGES: tuple[str, ...] = ("scene", "transport", "solve", "evaluate", "analysis")
+STAGES: tuple[str, ...] = ("scene", "transport", "solve", "evaluate", "analysis", "report")
 PACKAGE = "objcam.stages"  # tests point this at a package of toy stages
 
 

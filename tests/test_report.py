@@ -1,0 +1,126 @@
+"""The report stage: one self-contained HTML page per capture (images inlined as PNG data URIs, no external
+resources), on a tiny synthetic capture run through the real CLI with "report" added to the stage graph."""
+
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from objcam.pipeline import graph
+from objcam.pipeline.cli import main
+from objcam.pipeline.stage import StageInputs
+from objcam.report.html import PNG_SIGNATURE, fmt
+
+VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
+
+
+class Checker(HTMLParser):
+    """Balanced tags, every <img> a data: PNG, no external URL, and the visible text."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.stack: list[str] = []
+        self.errors: list[str] = []
+        self.images = 0
+        self.text: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        for k in ("src", "href"):
+            v = a.get(k) or ""
+            if "http://" in v or "https://" in v or v.startswith("//"):
+                self.errors.append(f"external {k}: {v[:80]}")
+        if tag == "img":
+            self.images += 1
+            src = a.get("src") or ""
+            prefix = "data:image/png;base64,"
+            if not src.startswith(prefix):
+                self.errors.append(f"img src not a PNG data URI: {src[:60]}")
+            elif not base64.b64decode(src[len(prefix):], validate=True).startswith(PNG_SIGNATURE):
+                self.errors.append("img data is not a PNG")
+        if tag not in VOID:
+            self.stack.append(tag)
+
+    def handle_startendtag(self, tag, attrs):
+        self.handle_starttag(tag, attrs)
+        if tag not in VOID:
+            self.stack.pop()
+
+    def handle_endtag(self, tag):
+        if tag in VOID:
+            return
+        if not self.stack or self.stack[-1] != tag:
+            self.errors.append(f"unbalanced </{tag}> (open: {self.stack[-3:]})")
+        else:
+            self.stack.pop()
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def check_page(path: Path) -> tuple[Checker, str]:
+    assert path.is_file()
+    assert path.stat().st_size < 5_000_000
+    text = path.read_text(encoding="utf-8")
+    c = Checker()
+    c.feed(text)
+    c.close()
+    assert not c.errors, c.errors[:5]
+    assert not c.stack, c.stack
+    return c, " ".join(c.text)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    cap = tmp_path_factory.mktemp("report") / "capture"
+    assert main(["synth", str(cap), "--envmap", "sunrise", "--spp", "16",
+                 "--cameras", '[{"width": 48, "height": 48, "distance": 0.3}]']) == 0
+    assert "report" in graph.STAGES  # the last stage of `objcam run`
+    assert main(["run", str(cap), "--quiet", "--set", "transport.model=direct"]) == 0
+    return cap
+
+
+def test_page_is_self_contained_and_complete(capture):
+    work = capture / "objcam"
+    c, text = check_page(work / "report" / "index.html")
+    assert c.images >= 10  # overview, compare, target, prediction, residual, cooks, leverage, unc., spectrum, gains
+    metrics = json.loads((work / "evaluate" / "metrics.json").read_text())["t0"]
+    for k in ("ssim", "relative_rmse", "tonemapped_rmse", "brightest_angle_deg"):
+        assert fmt(metrics[k]) in text, k
+    solve = json.loads((work / "solve" / "t0" / "solve.json").read_text())
+    assert fmt(solve["kkt_residual_max"]) in text
+    groups = json.loads((work / "analysis" / "analysis.json").read_text())["groups"]
+    assert fmt(groups["cam0"]["effective_rank"]) in text
+    for name in ("scene", "transport", "solve", "evaluate", "analysis"):
+        info = json.loads((work / name / "stage.json").read_text())
+        assert name in text and fmt(info["wall_seconds"]) in text, name
+    assert "gamma 1/2.2" in text and str(capture) in text
+    info = json.loads((work / "report" / "stage.json").read_text())
+    assert info["metrics"]["bytes"] < 5_000_000
+
+
+def test_no_truth_and_missing_artifacts_get_notes(capture, tmp_path):
+    import objcam.stages.report as report
+
+    work = tmp_path / "work"
+    shutil.copytree(capture / "objcam", work, ignore=shutil.ignore_patterns("transport"))
+    (work / "transport").mkdir()
+    shutil.copy(capture / "objcam" / "transport" / "index.json", work / "transport" / "index.json")
+    shutil.copy(capture / "objcam" / "transport" / "stage.json", work / "transport" / "stage.json")
+    shutil.rmtree(work / "evaluate" / "t0")
+    (work / "evaluate" / "metrics.json").write_text(json.dumps({"truth": False}))
+    (work / "analysis" / "cam0" / "gains.png").unlink()
+    (work / "solve" / "stage.json").unlink()
+    out = tmp_path / "out"
+    out.mkdir()
+    res = report.run(StageInputs(capture=capture, upstream={n: work / n for n in report.DEPS}, out=out),
+                     report.Params())
+    _, text = check_page(out / "index.html")
+    assert "no truth" in text.lower()
+    assert "no gains.png" in text and "no stage.json" in text
+    assert res.metrics["targets"] == 1
