@@ -1,0 +1,132 @@
+"""One call from a merged chrome-ball bracket to the ground-truth envmap: bracket checks, ball fit, unwrap, and
+the area-averaged map at the solve resolution.
+
+Bracket checks (InputError naming the frame to change):
+
+- saturated everywhere: more than half of the image, or of the ball's pixels, is saturated in every frame
+  (``MergeResult.valid`` False) -> names the SHORTEST frame: add shorter exposures;
+- exposed nowhere: more than half of the image, or of the ball's pixels, has no frame with a usable signal
+  (``frames_used == 0`` and not saturated: below the merge's ``low`` threshold in every frame) -> names the
+  LONGEST frame: add longer exposures.
+
+A few saturated pixels (the sun) are expected: they are flagged, their texels marked SATURATED, and the energy
+there is a lower bound (``ProbeResult.lower_bound``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from objcam.camera import Camera
+from objcam.errors import InputError
+from objcam.probe.fit import BallFit, fit_ball
+from objcam.probe.optics import Reflectance
+from objcam.probe.unwrap import ProbeEnvmap, unwrap
+
+MAX_BAD_FRACTION = 0.5
+
+
+@dataclass
+class ProbeResult:
+    fit: BallFit
+    probe: ProbeEnvmap  # fine grid
+    envmap: np.ndarray | None = None  # (h, 2h, 3) area-averaged to solve_height
+    valid: np.ndarray | None = None  # (h, 2h) bool
+    saturated: np.ndarray | None = None  # (h, 2h) bool: lower bounds
+    ball_saturated_fraction: float = 0.0  # of the ball's pixels saturated in every frame
+
+    @property
+    def lower_bound(self) -> bool:
+        return self.probe.lower_bound
+
+    def summary(self) -> dict:
+        out = {"fit": self.fit.to_dict(), "probe": self.probe.summary(),
+               "ball_saturated_fraction": self.ball_saturated_fraction, "lower_bound": self.lower_bound}
+        if self.valid is not None:
+            out["solve_height"] = int(self.valid.shape[0])
+            out["valid_texels"] = int(self.valid.sum())
+            out["saturated_texels"] = int(self.saturated.sum())
+        return out
+
+
+def ball_mask(camera: Camera, centre, radius: float) -> np.ndarray:
+    """(H, W) bool: pixels whose centre ray hits the sphere."""
+    vv, uu = np.meshgrid(np.arange(camera.height, dtype=np.float64), np.arange(camera.width, dtype=np.float64),
+                         indexing="ij")
+    o, d = camera.rays(uu, vv)
+    oc = np.asarray(centre, np.float64) - camera.centre
+    t = d @ oc
+    miss2 = np.sum(oc * oc) - t * t
+    return (t > 0) & (miss2 <= radius * radius)
+
+
+def _frame(merge, shortest: bool) -> Path | None:
+    paths = getattr(merge, "paths", ())
+    if not paths:
+        return None
+    return Path(paths[0] if shortest else paths[-1])
+
+
+def check_bracket(merge, region: np.ndarray | None = None, what: str = "the image") -> None:
+    """Raise InputError when ``region`` (bool (H, W), default everything) of a MergeResult is mostly saturated in
+    every frame, or mostly without a usable frame (see the module doc)."""
+    valid = np.asarray(merge.valid, bool)
+    m = np.ones(valid.shape, bool) if region is None else np.asarray(region, bool)
+    n = int(m.sum())
+    if n == 0:
+        return
+    sat = float((~valid & m).sum()) / n
+    if sat > MAX_BAD_FRACTION:
+        times = getattr(merge, "times", ())
+        t0 = f" ({times[0]:.4g} s)" if times else ""
+        raise InputError(f"{100 * sat:.0f}% of {what} is saturated in every frame of the bracket, even the "
+                         f"shortest{t0}", _frame(merge, True),
+                         "add shorter exposures (2-3 stops apart) until the brightest part of the ball, the sun "
+                         "aside, is below the white level in the shortest frame")
+    used = np.asarray(getattr(merge, "frames_used", np.ones(valid.shape, np.uint8)))
+    dark = float((valid & (used == 0) & m).sum()) / n
+    if dark > MAX_BAD_FRACTION:
+        times = getattr(merge, "times", ())
+        t1 = f" ({times[-1]:.4g} s)" if times else ""
+        raise InputError(f"{100 * dark:.0f}% of {what} has no usable signal in any frame of the bracket, even "
+                         f"the longest{t1}", _frame(merge, False),
+                         "add longer exposures (2-3 stops apart) until the ball's darkest reflections reach "
+                         "about 1/4 of the white level in the longest frame")
+
+
+def recover_probe(hdr, camera: Camera, radius: float, *, known_centre=None, rests_on_plane: bool = True,
+                  approx_px=None, skip_contact: float = 1.0, height: int | None = None,
+                  solve_height: int | None = None, reflectance: Reflectance | None = None,
+                  max_incidence_deg: float = 80.0, camera_cone_deg: float = 10.0, min_valid_fraction: float = 0.5,
+                  source: str | Path | None = None) -> ProbeResult:
+    """Ground-truth envmap from a chrome ball of ``radius`` metres in ``hdr``: a
+    :class:`~objcam.capture.hdr.MergeResult` (bracket checks and saturation flags) or an (H, W, 3) array.
+
+    The fine map is ``height`` rows (default: 512, or 1024 when the ball's apparent radius exceeds 330 px, so
+    that a fine texel is no larger than a pixel at the ball's centre); with ``solve_height`` it is also
+    area-averaged to that many rows (``height`` must be a multiple). Radiance is in the units of ``hdr`` (a
+    MergeResult's ``reference`` units: scene radiance times the longest exposure time, for a synthetic
+    bracket). Other arguments: :func:`objcam.probe.fit.fit_ball`, :func:`objcam.probe.unwrap.unwrap`,
+    :meth:`objcam.probe.unwrap.ProbeEnvmap.downsample`.
+    """
+    merge = hdr if hasattr(hdr, "radiance") else None
+    if merge is not None:
+        check_bracket(merge)
+    fit = fit_ball(hdr, camera, radius, known_centre=known_centre, rests_on_plane=rests_on_plane,
+                   approx_px=approx_px, skip_contact=skip_contact, source=source)
+    sat_frac = 0.0
+    if merge is not None:
+        ball = ball_mask(camera, fit.centre_world, radius)
+        check_bracket(merge, ball, "the chrome ball")
+        sat_frac = float((~np.asarray(merge.valid, bool) & ball).sum() / max(ball.sum(), 1))
+    if height is None:
+        height = 512 if fit.apparent_radius_px * np.pi / 2 <= 512 else 1024
+    probe = unwrap(hdr, camera, fit.centre_world, radius, height=height, reflectance=reflectance,
+                   max_incidence_deg=max_incidence_deg, camera_cone_deg=camera_cone_deg)
+    res = ProbeResult(fit, probe, ball_saturated_fraction=sat_frac)
+    if solve_height is not None:
+        res.envmap, res.valid, res.saturated = probe.downsample(solve_height, min_valid_fraction)
+    return res
