@@ -136,7 +136,6 @@ def column_error(tr, ref: dict) -> float:
 
 
 HDRIS_USED: list[str] = []
-LOAD = os.getloadavg()
 
 
 def main(argv=None) -> int:
@@ -185,7 +184,8 @@ def main(argv=None) -> int:
 
         tr = load_transport(work / "transport", hdris[0])
         trec = json.loads((work / "transport" / "stage.json").read_text())
-        a_rows.append({"setting": label, "seconds": trec["wall_seconds"], "column_error": column_error(tr, ref),
+        a_rows.append({"setting": label, "seconds": trec["wall_seconds"], "load": trec.get("load_average"),
+                       "column_error": column_error(tr, ref),
                        "pixels": int(tr.A.shape[1]), "texels": int(tr.A.shape[2]),
                        "summary": trec["summary"]})
         log(f"  {label}: A in {trec['wall_seconds']:.1f} s, column error {a_rows[-1]['column_error']:.4f}")
@@ -213,10 +213,12 @@ def render_markdown(a_rows, rows, hdris, target_spp, ref, args) -> str:
              f"{len(ref['texels'])} sampled columns rendered twice at {int(ref['spp'])} spp, the reference's own "
              "noise subtracted. `auto` and `path` include indirect light (interreflections), so their distance from "
              "this direct-light reference is mostly the indirect part itself, not an error. Times are wall-clock "
-             f"on a machine whose 1-minute load average was {LOAD[0]:.1f} when the run started (2 cores).", "",
-             "| setting | A time (s) | column error | pixels x texels |", "|---|---:|---:|---|"]
+             "on 2 cores; `load` is the machine's 1-minute load average when the stage started (above 1, other "
+             "work shared the cores).", "",
+             "| setting | A time (s) | load | column error | pixels x texels |", "|---|---:|---:|---:|---|"]
     for r in a_rows:
-        lines.append(f"| {r['setting']} | {r['seconds']:.1f} | {100 * r['column_error']:.2f}% | "
+        load = "" if r.get("load") is None else f"{r['load']:.1f}"
+        lines.append(f"| {r['setting']} | {r['seconds']:.1f} | {load} | {100 * r['column_error']:.2f}% | "
                      f"{r['pixels']:,} x {r['texels']:,} |")
     lines += ["", "## Solve: time and envmap error per HDRI", "",
               "SSIM and RMSE of tonemapped maps (truth's 99th percentile, clip, gamma 1/2.2); relative RMSE = "

@@ -255,6 +255,7 @@ class Pipeline:
         tmp.mkdir(parents=True)
         upstream = {d: self.stage_dir(d) for d in mod.DEPS}
         inputs = StageInputs(capture=self.capture, upstream=upstream, out=tmp, quiet=self.quiet)
+        load = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
         t0 = time.perf_counter()
         try:
             with _PeakRSS() as mem:
@@ -275,7 +276,7 @@ class Pipeline:
         record = StageRecord(
             stage=name, key=key, code=parts["code"], params=parts["params"].model_dump(mode="json"),
             inputs=parts["inputs"], upstream=parts["upstream"], wall_seconds=round(seconds, 3),
-            peak_rss_mb=round(mem.peak / 2**20, 1), metrics=outputs.metrics, summary=outputs.summary,
+            peak_rss_mb=round(mem.peak / 2**20, 1), load_average=load, metrics=outputs.metrics, summary=outputs.summary,
             finished=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), objcam_version=__version__,
         )
         atomic_write_text(tmp / "stage.json", record.model_dump_json(indent=2))

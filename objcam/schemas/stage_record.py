@@ -17,6 +17,7 @@ class StageRecord(BaseModel):
     upstream: dict[str, str]  # upstream stage -> its key
     wall_seconds: float
     peak_rss_mb: float  # peak resident memory of the process while the stage ran
+    load_average: float | None = None  # the machine's 1-minute load average when the stage started (timings)
     metrics: dict[str, Any]
     summary: str
     finished: str  # ISO time
