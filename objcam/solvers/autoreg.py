@@ -45,6 +45,7 @@ import scipy.linalg as sla
 
 from objcam.envmap import EnvGrid
 from objcam.solvers.regularization import DEFAULT_LR_REL, data_scale, difference_operator, gram, rhs
+from objcam.solvers.search import golden_section
 from objcam.threads import single_blas_thread
 
 #: Default relative ls grid: 1e-7 .. 1e2, 10 points per decade.
@@ -212,22 +213,9 @@ def choose_weights(
             t_best, v_best = log_grid[j], cv["gcv"][j]
             if refine and 0 < j < ls_grid.size - 1:
                 f = lambda t: sysm.evaluate(np.exp(t) * s)["gcv"]  # noqa: E731
-                a_, b_ = log_grid[j - 1], log_grid[j + 1]
-                g = 0.5 * (np.sqrt(5.0) - 1.0)
-                x1, x2 = b_ - g * (b_ - a_), a_ + g * (b_ - a_)
-                f1, f2 = f(x1), f(x2)
-                while b_ - a_ > 1e-4:
-                    if f1 < f2:
-                        b_, x2, f2 = x2, x1, f1
-                        x1 = b_ - g * (b_ - a_)
-                        f1 = f(x1)
-                    else:
-                        a_, x1, f1 = x1, x2, f2
-                        x2 = a_ + g * (b_ - a_)
-                        f2 = f(x2)
-                for t, v in ((x1, f1), (x2, f2)):
-                    if v < v_best:
-                        t_best, v_best = t, v
+                t, v = golden_section(f, log_grid[j - 1], log_grid[j + 1], tol=1e-4)
+                if v < v_best:
+                    t_best, v_best = t, v
             if j in (0, ls_grid.size - 1):
                 info["notes"].append(f"GCV minimum at the edge of the ls grid (lr_rel={lr_rel:g})")
             if best is None or v_best < best[0]:

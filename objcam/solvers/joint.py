@@ -105,6 +105,7 @@ from objcam.envmap import EnvGrid
 from objcam.metrics import relative_rmse
 from objcam.solvers.nnls import kkt_residual, solve_exact
 from objcam.solvers.regularization import DEFAULT_LR_REL, DEFAULT_LS_REL, difference_operator
+from objcam.solvers.search import golden_section
 from objcam.threads import single_blas_thread
 
 #: Default lower bound on the albedo (the model's (0, 1] made closed).
@@ -915,23 +916,9 @@ def solve_joint(
             j = int(np.argmin(vals))
             a_, b_ = ts[max(j - 1, 0)], ts[min(j + 1, ts.size - 1)]
             best_t, best_v = ts[j], vals[j]
-            gr_ = 0.5 * (np.sqrt(5.0) - 1.0)
-            x1, x2 = b_ - gr_ * (b_ - a_), a_ + gr_ * (b_ - a_)
-            f1, f2 = f(x1), f(x2)
-            for _ in range(40):
-                if f1 < f2:
-                    b_, x2, f2 = x2, x1, f1
-                    x1 = b_ - gr_ * (b_ - a_)
-                    f1 = f(x1)
-                else:
-                    a_, x1, f1 = x1, x2, f2
-                    x2 = a_ + gr_ * (b_ - a_)
-                    f2 = f(x2)
-                if b_ - a_ < 1e-8:
-                    break
-            for t, v in ((x1, f1), (x2, f2)):
-                if v < best_v:
-                    best_t, best_v = t, v
+            t, v = golden_section(f, a_, b_, tol=1e-8, max_iter=40)
+            if v < best_v:
+                best_t, best_v = t, v
             if best_v >= f(0.0):
                 continue
             cs = float(np.exp(best_t))
