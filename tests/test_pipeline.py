@@ -154,6 +154,7 @@ def test_failed_stage_leaves_no_artifact_and_keeps_others(toy):
 def test_bad_override_is_one_clear_line(toy):
     with pytest.raises(ObjcamError, match=r"bad --set for stage second: second.offset"):
         Pipeline(toy, overrides={"second": {"offset": "abc"}}).run()
+    assert runs(toy) == []  # refused before any stage ran
     with pytest.raises(ObjcamError, match="no stage 'nope'"):
         parse_overrides(["nope.x=1"])
     assert parse_overrides(["second.offset=2.5", "third.fail=true"]) == {"second": {"offset": 2.5},

@@ -231,11 +231,14 @@ class Pipeline:
             if f not in graph.STAGES:
                 raise ObjcamError(f"--force {f!r}: no such stage (stages: {', '.join(graph.STAGES)})")
         forced = graph.downstream_closure(set(force or []))
+        plan = self.plan(until, only)
+        for name in plan:  # a bad --set fails before any stage runs, not after the slow ones
+            self.params(name)
         reports: list[StageReport] = []
         with self.lock():
             self._load_memo()
             try:
-                for name in self.plan(until, only):
+                for name in plan:
                     rep = self._run_one(name, name in forced)
                     reports.append(rep)
                     if on_stage:
