@@ -74,9 +74,11 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         tr = load_transport(inputs.upstream["transport"], target.name)
         grid = EnvGrid(tr.env_height)
         A = tr.A[0] if tr.channels == 1 else tr.A.mean(axis=0)
-        G = tr.gram()[0] if tr.channels == 1 else gram(A)
-        lr = absolute_weights(G, 0.0, params.lr)[1]
+        # the target's solved envmap at the kept texels, RGB (N, 3)
+        x_solved = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].reshape(-1, 3)[tr.texel_index]
         if group not in done_groups:
+            G = tr.gram()[0] if tr.channels == 1 else gram(A)
+            lr = absolute_weights(G, 0.0, params.lr)[1]
             gdir = out / group
             L = an.cholesky_factor(G, lr)
             h = an.leverage(A, lr, L=L)
@@ -93,11 +95,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                                units="radiance per unit pixel noise")
             an.plot_spectrum(sv, gdir / "spectrum.png", tol=params.rank_tol, lr=lr,
                              title=f"singular spectrum of A ({A.shape[0]:,} px x {A.shape[1]:,} texels)")
-            x_solved = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].reshape(-1, 3)[tr.texel_index]
             brightest = int(np.argmax(x_solved.mean(axis=1))) if x_solved.size else None
             cols = _gain_texels(grid, tr.texel_index, brightest, params.gain_directions)
             if cols:
-                ls_abs, _ = absolute_weights(G, solve_params.get("ls", 0.1), 0.0)
+                ls_abs, _ = absolute_weights(G, solve_params["ls"], 0.0)
                 R = an.regularizer(grid, tr.texel_index, ls_abs, lr)
                 rows = an.gain_images(A, R, cols, G=G)
                 imgs = an.scatter_to_image(rows, tr.pixel_index, tr.image_shape)
@@ -118,12 +119,11 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                 "lr_absolute": float(lr),
             }
             results["groups"][group] = g
-            done_groups[group] = (L, h)
-        L, h = done_groups[group]
-        image, valid = pool_target(target.load_image(scene.folder), target.load_valid(scene.folder), tr.downsample)
+            done_groups[group] = (L, h, lr)
+        L, h, lr = done_groups[group]
+        image, _ = pool_target(target.load_image(scene.folder), target.load_valid(scene.folder), tr.downsample)
         y = tr.pixels_of(image).mean(axis=1).astype(np.float64)
-        x = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].reshape(-1, 3)[tr.texel_index].mean(axis=1)
-        d = an.cooks_distance(A, y, x.astype(np.float64), lr, h=h, L=L)
+        d = an.cooks_distance(A, y, x_solved.mean(axis=1).astype(np.float64), lr, h=h, L=L)
         d_img = an.scatter_to_image(d, tr.pixel_index, tr.image_shape)
         write_exr(out / target.name / "cooks.exr", np.nan_to_num(d_img))
         an.plot_image_map(d_img, out / target.name / "cooks.png", log=True,

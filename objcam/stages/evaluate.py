@@ -66,6 +66,8 @@ def _compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarra
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
+    import cv2
+
     from objcam.metrics import envmap_metrics
 
     scene = SceneArtifact.load(inputs.upstream["scene"])
@@ -76,8 +78,6 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         if tpath is None:
             continue
         est = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].astype(np.float64)
-        import cv2
-
         mask = cv2.imread(str(solve_dir / target.name / "envmap_mask.png"), cv2.IMREAD_UNCHANGED) > 127
         truth_full = read_exr(tpath)[..., :3].astype(np.float64)
         if truth_full.shape[1] != 2 * truth_full.shape[0]:

@@ -51,11 +51,6 @@ def _pixels(transport, image: np.ndarray, valid: np.ndarray):
     return img, ok, y, use
 
 
-def _transport_key(tr, target_name: str) -> str:
-    """Identifies the A a target uses (targets sharing a camera share one A)."""
-    return str(getattr(tr, "folder", target_name))
-
-
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
     from objcam import solvers
     from objcam.transport import load_transport
@@ -82,7 +77,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             for c in range(C):
                 # one Gram matrix per (A, channel, usable pixels): shared by every channel of a grey A and by
                 # every target that shares the camera and the valid mask
-                key = (_transport_key(tr, target.name), c, hash(use.tobytes()))
+                key = (str(tr.folder), c, hash(use.tobytes()))
                 Ac = tr.A[c][use]
                 if key not in gram_cache:
                     # the transport stage stored A^T A over all kept pixels; remove the few excluded rows
@@ -103,9 +98,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                 obj[chans] = solvers.objective(Q, B, res.x, np.einsum("ij,ij->j", Yc, Yc))
         solve_s = time.perf_counter() - t0
 
-        env = np.zeros((grid.n_texels, 3))
-        env[tr.texel_index] = X
-        env = env.reshape(grid.height, grid.width, 3)
+        env = tr.envmap_from_x(X)
         mask = np.zeros(grid.n_texels, bool)
         mask[tr.texel_index] = True
         mask = mask.reshape(grid.shape)
