@@ -116,11 +116,13 @@ def make_plane(size: float, texture_extent: float | None = None) -> MeshData:
 
 
 class AlbedoValue(BaseModel):
-    """A resolved albedo: a constant RGB, or an EXR texture (path relative to the scene folder)."""
+    """A resolved albedo: a constant RGB, or an EXR texture (path relative to the scene folder). Neither: unknown;
+    ``initial`` then may name an estimate (photogrammetry's texture over the mesh's UVs) to start a joint solve."""
 
     model_config = ConfigDict(extra="forbid")
     rgb: tuple[float, float, float] | None = None
     texture: str | None = None
+    initial: str | None = None
 
     @property
     def known(self) -> bool:

@@ -66,7 +66,7 @@ def _print_reports(console, reports, title: str) -> None:
     for col in ("stage", "status", "time", "summary"):
         t.add_column(col, overflow="fold")
     for r in reports:
-        style = {"ran": "green", "cached": "cyan", "failed": "red"}.get(r.status, "")
+        style = {"ran": "green", "cached": "cyan", "failed": "red", "n/a": "dim"}.get(r.status, "")
         t.add_row(r.stage, f"[{style}]{r.status}[/]", f"{r.seconds:.2f} s", r.summary)
     console.print(t)
 
@@ -80,6 +80,8 @@ def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
     pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides), quiet=args.quiet)
 
     def live(rep) -> None:
+        if rep.status == "n/a":
+            return  # a photo stage on a known-geometry capture: the summary table lists it
         word = "skipped (unchanged)" if rep.status == "cached" else f"done in {rep.seconds:.2f} s"
         console.print(f"[bold]{rep.stage}[/]: {word}  {rep.summary}")
 
@@ -99,7 +101,7 @@ def _status(args) -> int:
     for col in ("stage", "state", "time", "key", "summary"):
         t.add_column(col, overflow="fold")
     for row in pipe.status():
-        style = {"done": "green", "stale": "yellow", "missing": "red"}[row["state"]]
+        style = {"done": "green", "stale": "yellow", "missing": "red", "n/a": "dim"}[row["state"]]
         secs = f"{row['seconds']:.2f} s" if row["seconds"] is not None else ""
         t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], row["summary"])
     _console().print(t)

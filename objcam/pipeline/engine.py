@@ -67,7 +67,7 @@ def make_params(name: str, overrides: dict[str, Any] | None) -> BaseModel:
 @dataclass
 class StageReport:
     stage: str
-    status: str  # "ran", "cached", "failed"
+    status: str  # "ran", "cached", "failed", "n/a" (the stage does not apply to this capture)
     key: str
     seconds: float = 0.0
     summary: str = ""
@@ -118,6 +118,7 @@ class Pipeline:
         self.quiet = quiet
         self._memo: dict[str, list] = {}
         self._keys: dict[str, str] = {}
+        self._applies: dict[str, bool] = {}
 
     # ---- keys -------------------------------------------------------------------------------------
     def stage_dir(self, name: str) -> Path:
@@ -136,12 +137,22 @@ class Pipeline:
             out[rel] = file_digest(f, self._memo)
         return out
 
+    def applies(self, name: str) -> bool:
+        if name not in self._applies:
+            self._applies[name] = graph.applies(name, self.capture)
+        return self._applies[name]
+
+    def upstream_of(self, name: str) -> list[str]:
+        """The dependencies whose artifacts ``name`` reads on this capture (optional ones only where they apply)."""
+        mod = graph.stage_module(name)
+        return list(mod.DEPS) + [d for d in getattr(mod, "OPTIONAL_DEPS", ()) if self.applies(d)]
+
     def key(self, name: str) -> tuple[str, dict]:
         """The key a run of ``name`` would have now, and the parts it hashes."""
         mod = graph.stage_module(name)
         params = self.params(name)
         inputs = self._inputs(name)
-        upstream = {d: self.key(d)[0] for d in mod.DEPS}
+        upstream = {d: self.key(d)[0] for d in self.upstream_of(name)}
         code = code_digest(mod)
         key = stage_key(name, code, params, inputs, upstream)
         self._keys[name] = key
@@ -159,6 +170,10 @@ class Pipeline:
         rows = []
         for name in graph.STAGES:
             rec = self.record(name)
+            if not self.applies(name):
+                rows.append({"stage": name, "state": "n/a", "seconds": None, "key": "", "current_key": "",
+                             "summary": f"applies when {graph.applies_when(name)}", "finished": ""})
+                continue
             try:
                 key = self.key(name)[0]
             except ObjcamError as e:
@@ -232,6 +247,10 @@ class Pipeline:
                 raise ObjcamError(f"--force {f!r}: no such stage (stages: {', '.join(graph.STAGES)})")
         forced = graph.downstream_closure(set(force or []))
         plan = self.plan(until, only)
+        for name in only or []:
+            if not self.applies(name):
+                raise ObjcamError(f"stage {name} does not apply to this capture: it runs when "
+                                  f"{graph.applies_when(name)}", self.capture / "capture.toml")
         for name in plan:  # a bad --set fails before any stage runs, not after the slow ones
             self.params(name)
         reports: list[StageReport] = []
@@ -249,6 +268,8 @@ class Pipeline:
 
     def _run_one(self, name: str, forced: bool) -> StageReport:
         mod = graph.stage_module(name)
+        if not self.applies(name):
+            return StageReport(name, "n/a", "", 0.0, f"not needed (runs when {graph.applies_when(name)})")
         key, parts = self.key(name)
         rec = self.record(name)
         if rec is not None and rec.key == key and not forced:
@@ -256,7 +277,7 @@ class Pipeline:
 
         tmp = self.work / f".tmp-{name}-{uuid.uuid4().hex[:8]}"
         tmp.mkdir(parents=True)
-        upstream = {d: self.stage_dir(d) for d in mod.DEPS}
+        upstream = {d: self.stage_dir(d) for d in self.upstream_of(name)}
         inputs = StageInputs(capture=self.capture, upstream=upstream, out=tmp, quiet=self.quiet)
         load = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
         t0 = time.perf_counter()

@@ -28,6 +28,7 @@ class TargetRecord(BaseModel):
     camera: Camera
     image: str  # relative to the scene artifact folder
     valid: str  # relative to the scene artifact folder
+    illumination: str = ""  # targets sharing it show one envmap from several cameras (default: the target's name)
     saturation: float | None = None
     noise_sigma: float | None = None
     n_valid: int

@@ -1,4 +1,12 @@
-"""``capture.toml``: the manifest of a known-geometry capture (see data_layout.md for the whole contract)."""
+"""``capture.toml``: the manifest of a capture (see data_layout.md for the whole contract).
+
+Two flavours share one schema. A known-geometry capture names the object mesh and gives every target as a linear
+HDR image with its camera file. A photographed capture gives raw (or TIFF/JPEG) photos: a ``[views]`` folder for
+structure from motion, each target as a folder holding one image or an exposure bracket, the printed ``[board]``
+(or a known object size, ``[scale]``) for the metric world frame, optional chrome-ball ``[[probes]]``; the
+``ingest``, ``sfm``, ``geometry``, ``texture`` and ``probe`` stages turn those into what the known-geometry
+flavour states directly. ``scene.object`` may then be omitted (the shape is reconstructed from the views).
+"""
 
 from __future__ import annotations
 
@@ -6,9 +14,10 @@ import tomllib
 from pathlib import Path
 from typing import Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from objcam.errors import InputError
+from objcam.sfm.board import BoardSpec
 
 RGB = tuple[float, float, float]
 
@@ -27,7 +36,10 @@ AlbedoSpec = Union[float, RGB, TextureAlbedo]
 
 class SceneSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    object: str = Field(description="object mesh (PLY/OBJ/STL), world metres, resting on z = 0")
+    object: str | None = Field(default=None, description="object mesh (PLY/OBJ/STL), world metres, resting on "
+                               "z = 0; for a photographed capture the known shape (e.g. the 3D-printed model, "
+                               "any pose and unit: the geometry stage registers it); omitted: reconstructed "
+                               "from the views")
     support: str = Field(default="plane", description="'plane' for z = 0, or a support mesh file")
     plane_size: float = Field(default=20.0, gt=0, description="side of the square support plane, metres")
 
@@ -60,19 +72,113 @@ class AlbedoSection(BaseModel):
 class TargetSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
-    image: str = Field(description="linear HDR image (EXR)")
-    camera: str = Field(description="camera JSON: width, height, fx, fy, cx, cy, world_from_camera")
+    image: str | None = Field(default=None, description="linear HDR image (EXR)")
+    folder: str | None = Field(default=None, description="folder holding one photo or an exposure bracket "
+                               "(raw, 16-bit TIFF, JPEG or EXR), merged to linear HDR by the ingest stage")
+    camera: str | None = Field(default=None, description="camera JSON: width, height, fx, fy, cx, cy, "
+                               "world_from_camera; omitted in a photographed capture (the sfm stage poses it)")
+    illumination: str | None = Field(default=None, description="targets with the same illumination name show "
+                                     "the same envmap from different cameras (default: the target's own name)")
     mask: str | None = Field(default=None, description="optional image, nonzero = usable pixel")
     saturation: float | None = Field(default=None, gt=0, description="pixels >= this in any channel are excluded")
     noise_sigma: float | None = Field(default=None, ge=0,
                                       description="relative noise of the image, if known (used by transport auto)")
 
+    @model_validator(mode="after")
+    def _source(self):
+        if (self.image is None) == (self.folder is None):
+            raise ValueError(f"target {self.name!r}: give exactly one of image (a linear EXR) or folder (photos)")
+        return self
+
+    @property
+    def illumination_name(self) -> str:
+        return self.illumination or self.name
+
+
+class CameraFacts(BaseModel):
+    """``[camera]``: what the photographer knows about the camera; everything else is read from the files."""
+
+    model_config = ConfigDict(extra="forbid")
+    white_balance: Union[Literal["camera", "daylight", "none"], RGB] = Field(
+        "camera", description="raw white balance: the camera's as-shot multipliers, daylight, none (raw camera "
+        "RGB) or explicit [r, g, b] multipliers")
+    demosaic: Literal["superpixel", "bilinear"] = Field("superpixel", description="raw demosaicing (superpixel "
+                                                        "halves the size, no interpolation)")
+    exposure_times: dict[str, float] = Field(default_factory=dict, description="exposure time override, seconds, "
+                                             "by file name, for files without EXIF")
+    distortion: list[float] | None = Field(None, description="OpenCV distortion k1 k2 p1 p2 [k3], if known")
+
+
+class ViewsSpec(BaseModel):
+    """``[views]``: the photos for structure from motion (the object on the board, from all around)."""
+
+    model_config = ConfigDict(extra="forbid")
+    folder: str = Field("views", description="folder of photos (raw, TIFF, JPEG or PNG)")
+    max_size: int = Field(1600, ge=200, le=16384, description="longest side of the copies SfM sees, pixels")
+
+
+class ScaleSpec(BaseModel):
+    """``[scale]``: the metric reference when there is no board: the known height of the object."""
+
+    model_config = ConfigDict(extra="forbid")
+    object_height: float = Field(gt=0, description="object height above the support, metres")
+
+
+class ProbeSpec(BaseModel):
+    """``[[probes]]``: a chrome ball photographed (one image or a bracket) at the object's place, per illumination."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    folder: str = Field(description="folder holding the ball photo or its exposure bracket")
+    illumination: str | None = Field(None, description="the illumination (target name) it is ground truth for "
+                                     "(default: its own name)")
+    diameter: float = Field(gt=0, description="ball diameter, metres")
+    centre: tuple[float, float, float] | None = Field(None, description="ball centre in world metres; default: it "
+                                                      "rests on z = 0 where the photo shows it")
+    camera: str | None = Field(None, description="camera JSON of the photo; default: posed by the sfm stage")
+    reflectance: float | None = Field(None, gt=0, le=1, description="chrome reflectance calibration factor "
+                                      "(default: a measured typical value)")
+
+    @property
+    def illumination_name(self) -> str:
+        return self.illumination or self.name
+
 
 class CaptureManifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    scene: SceneSpec
+    scene: SceneSpec = SceneSpec()
     albedo: AlbedoSection = AlbedoSection()
     targets: list[TargetSpec] = Field(min_length=1)
+    camera: CameraFacts = CameraFacts()
+    views: ViewsSpec | None = None
+    board: BoardSpec | None = None
+    scale: ScaleSpec | None = None
+    probes: list[ProbeSpec] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _flavour(self):
+        if self.views is None:
+            if self.scene.object is None:
+                raise ValueError("scene.object is required when the capture has no [views] to reconstruct it from")
+            posed = [t.name for t in self.targets if t.camera is None]
+            if posed:
+                raise ValueError(f"target(s) {', '.join(posed)} have no camera and there are no [views] for "
+                                 "structure from motion to pose them")
+            unposed = [p.name for p in self.probes if p.camera is None]
+            if unposed:
+                raise ValueError(f"probe(s) {', '.join(unposed)} have no camera and there are no [views]")
+        elif self.board is None and self.scale is None:
+            raise ValueError("a capture with [views] needs a metric reference: a [board] section (the printed "
+                             "ChArUco board) or [scale] object_height")
+        names = [p.name for p in self.probes]
+        if len(set(names)) != len(names):
+            raise ValueError("probe names must be unique")
+        return self
+
+    @property
+    def photographed(self) -> bool:
+        """True when some stage must work from photos (views, photo targets or probes)."""
+        return self.views is not None or bool(self.probes) or any(t.folder for t in self.targets)
 
     @field_validator("targets")
     @classmethod
@@ -108,3 +214,12 @@ def albedo_is_known(spec: AlbedoSpec | None) -> bool:
 
 
 SupportKind = Literal["plane", "mesh"]
+
+
+def try_load(capture_dir: str | Path) -> CaptureManifest | None:
+    """The manifest, or None when it is missing or invalid (the scene stage reports why, in one line).
+    Stages' ``applies`` tests use this: they must never fail."""
+    try:
+        return CaptureManifest.load(capture_dir)
+    except InputError:
+        return None

@@ -1,6 +1,9 @@
-"""Stage ``scene``: validate a known-geometry capture and normalise it into the scene artifact.
+"""Stage ``scene``: validate a capture and normalise it into the scene artifact every later stage reads.
 
-Reads capture.toml, the meshes, albedo textures, target images and cameras; checks each and fails with one line
+Known-geometry capture: reads capture.toml, the meshes, albedo textures, target images and cameras. Photographed
+capture: the same, with what the photo stages made in place of what the manifest does not state: target images
+from ``ingest``, cameras from ``sfm``, meshes from ``geometry`` (with ``texture``'s UVs), and texture's albedo
+estimate as the starting albedo of surfaces whose albedo is unknown. Checks each input and fails with one line
 naming the file and the fix; writes world-metre meshes, the scene description and every target's linear image
 and valid-pixel mask (see objcam/schemas/artifacts.py). Nothing in the capture folder is written.
 """
@@ -23,7 +26,8 @@ from objcam.schemas.capture import CaptureManifest, TextureAlbedo
 
 NAME = "scene"
 DEPS: tuple[str, ...] = ()
-VERSION = "1"
+OPTIONAL_DEPS: tuple[str, ...] = ("ingest", "sfm", "geometry", "texture")
+VERSION = "2"
 
 # An object taller than this is almost surely in millimetres or centimetres, not metres.
 MAX_PLAUSIBLE_OBJECT_SIZE_M = 5.0
@@ -42,14 +46,15 @@ def input_files(capture: Path) -> list[Path]:
         m = CaptureManifest.load(capture)
     except InputError:
         return files  # run() reports the error
-    files.append(capture / m.scene.object)
+    if m.scene.object is not None:
+        files.append(capture / m.scene.object)
     if m.scene.support != "plane":
         files.append(capture / m.scene.support)
     for a in (m.albedo.object, m.albedo.support):
         if isinstance(a, TextureAlbedo):
             files.append(capture / a.texture)
     for t in m.targets:
-        files += [capture / t.image, capture / t.camera] + ([capture / t.mask] if t.mask else [])
+        files += [capture / f for f in (t.image, t.camera, t.mask) if f]
     return files
 
 
@@ -87,16 +92,34 @@ def _albedo(spec, capture: Path, out: Path, name: str) -> AlbedoValue:
     return AlbedoValue(texture=fname)
 
 
-def _target(spec, capture: Path, out: Path) -> TargetRecord:
+def _target_sources(spec, capture: Path, upstream: dict[str, Path]) -> tuple[Path, Path, Path | None]:
+    """Camera file, image file and an upstream valid mask (or None) of one target."""
+    if spec.camera is not None:
+        cam_path = capture / spec.camera
+    elif "sfm" in upstream:
+        cam_path = upstream["sfm"] / "cameras" / "targets" / f"{spec.name}.json"
+        if not cam_path.is_file():
+            raise InputError(f"structure from motion could not pose target {spec.name!r}", capture / spec.folder,
+                             "see objcam/sfm/report.json; take the target photo with more of the board in view")
+    else:
+        raise InputError(f"target {spec.name!r} has no camera", capture / "capture.toml",
+                         "give its camera file, or [views] for structure from motion")
+    if spec.image is not None:
+        return cam_path, capture / spec.image, None
+    folder = upstream["ingest"] / "targets" / spec.name
+    return cam_path, folder / "image.exr", folder / "valid.png"
+
+
+def _target(spec, capture: Path, out: Path, upstream: dict[str, Path]) -> TargetRecord:
     import cv2
 
-    cam = Camera.load(capture / spec.camera)
-    img_path = capture / spec.image
+    cam_path, img_path, upstream_valid = _target_sources(spec, capture, upstream)
+    cam = Camera.load(cam_path)
     img = read_exr(img_path)
     h, w = img.shape[:2]
     if (w, h) != (cam.width, cam.height):
         raise InputError(f"image is {w}x{h} but its camera says {cam.width}x{cam.height}", img_path,
-                         f"use the camera file that took this image, or fix width/height in {spec.camera}")
+                         f"use the camera file that took this image, or fix width/height in {cam_path.name}")
     if img.shape[2] not in (1, 3, 4):
         raise InputError(f"image has {img.shape[2]} channels", img_path, "give an RGB or grey linear image")
     rgb = img[..., :3] if img.shape[2] >= 3 else np.repeat(img[..., :1], 3, axis=2)
@@ -109,6 +132,8 @@ def _target(spec, capture: Path, out: Path) -> TargetRecord:
         raise InputError(f"image has negative values (min {rgb.min():.3g}): not linear radiance", img_path,
                          "give a linear HDR image (black level subtracted, values >= 0)")
     valid = np.ones((h, w), bool)
+    if upstream_valid is not None:  # ingest flagged pixels saturated in every frame of the bracket
+        valid &= cv2.imread(str(upstream_valid), cv2.IMREAD_UNCHANGED) > 127
     if spec.saturation is not None:
         valid &= ~(rgb >= spec.saturation).any(axis=2)
     if spec.mask:
@@ -126,39 +151,61 @@ def _target(spec, capture: Path, out: Path) -> TargetRecord:
     write_exr(out / rel / "image.exr", np.maximum(rgb, 0.0))
     write_png(out / rel / "valid.png", valid.astype(np.float64))
     return TargetRecord(name=spec.name, camera=cam, image=str(rel / "image.exr"), valid=str(rel / "valid.png"),
-                        saturation=spec.saturation, noise_sigma=spec.noise_sigma, n_valid=int(valid.sum()),
+                        illumination=spec.illumination_name, saturation=spec.saturation,
+                        noise_sigma=spec.noise_sigma, n_valid=int(valid.sum()),
                         n_pixels=h * w)
 
 
+def _is_plane(mesh: MeshData, tol: float = 1e-6) -> bool:
+    """True when every vertex lies on z = 0 (the geometry stage's planar support)."""
+    return bool(np.abs(mesh.vertices[:, 2]).max() <= tol)
+
+
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
-    capture, out = inputs.capture, inputs.out
+    capture, out, up = inputs.capture, inputs.out, inputs.upstream
     manifest = CaptureManifest.load(capture)
-    obj_path = capture / manifest.scene.object
-    obj = load_mesh(obj_path)
+    # meshes: from the photos (texture's copies carry UVs) when the capture has views, else from the manifest
+    mesh_dir = up.get("texture") or up.get("geometry")
+    if mesh_dir is not None:
+        obj_path = mesh_dir / "object.npz"
+        obj = MeshData.load_npz(obj_path)
+    else:
+        obj_path = capture / manifest.scene.object
+        obj = load_mesh(obj_path)
     _check_object(obj, obj_path, params.ground_tolerance)
     obj.save(out / "object.npz")
 
     tex_extent = None
     if isinstance(manifest.albedo.support, TextureAlbedo):
         tex_extent = manifest.albedo.support.extent
-    if manifest.scene.support == "plane":
+    if mesh_dir is not None:
+        support = MeshData.load_npz(mesh_dir / "support.npz")
+    elif manifest.scene.support == "plane":
         support = make_plane(manifest.scene.plane_size, tex_extent)
     else:
         support = load_mesh(capture / manifest.scene.support)
     support.save(out / "support.npz")
 
     desc = SceneDescription(
-        object_mesh="object.npz", support_mesh="support.npz", support_is_plane=manifest.scene.support == "plane",
+        object_mesh="object.npz", support_mesh="support.npz",
+        support_is_plane=manifest.scene.support == "plane" if mesh_dir is None else _is_plane(support),
         albedo_object=_albedo(manifest.albedo.object, capture, out, "object"),
         albedo_support=_albedo(manifest.albedo.support, capture, out, "support"),
     )
+    if "texture" in up:  # photogrammetry's albedo: the starting point of surfaces whose albedo is unknown
+        for which in ("object", "support"):
+            a = getattr(desc, f"albedo_{which}")
+            src = up["texture"] / f"albedo_{which}.exr"
+            if not a.known and src.is_file():
+                write_exr(out / f"initial_albedo_{which}.exr", read_exr(src)[..., :3])
+                a.initial = f"initial_albedo_{which}.exr"
     for which, a in (("object", desc.albedo_object), ("support", desc.albedo_support)):
         if a.texture and which == "object" and obj.uv is None:
             raise InputError("object albedo is a texture but the mesh has no UVs", obj_path,
                              "export the mesh with texture coordinates, or give a constant albedo")
     atomic_write_text(out / "scene.json", desc.model_dump_json(indent=2))
 
-    targets = [_target(t, capture, out) for t in manifest.targets]
+    targets = [_target(t, capture, out, up) for t in manifest.targets]
     atomic_write_text(out / "targets.json", json.dumps([t.model_dump() for t in targets], indent=2))
 
     lo, hi = obj.bbox

@@ -1,11 +1,23 @@
-"""Stage ``solve``: recover each target's environment map from its transport matrix A (known albedo).
+"""Stage ``solve``: recover each target's environment map from its transport matrix A (and, where the capture
+leaves it unknown, the albedo).
 
-min_x ||A x - y||^2 + ls ||D x||^2 + lr ||x||^2, x >= 0, per colour channel, solved exactly in the Gram form.
-One Gram matrix serves every channel (grey A) and every target that shares A and its valid pixels.
+Known albedo (no kept pixel has ``unknown_albedo``): min_x ||A x - y||^2 + ls ||D x||^2 + lr ||x||^2, x >= 0,
+per colour channel, solved exactly in the Gram form. One Gram matrix serves every channel (grey A) and every
+target that shares A and its valid pixels.
+
+Unknown albedo: the joint solve (objcam.solvers.joint) of ``y_l = diag(rho_p) A'_p x_l`` for the albedo rho_p of
+every camera p and the envmap x_l of every illumination l, grouped as objcam.solvers.assemble says (targets of one
+camera share rho; targets with the same ``illumination`` name in capture.toml share x). The regularisation weight
+ls is chosen per joint problem by ``auto_reg`` (default GCV, bench/results.md) unless given. The envmap and the
+albedo are then known only up to one scale per colour channel (c rho, x / c fit equally): solve.json says so and
+evaluate compares after the best-fit scale.
+
+``method=adam``: the gradient-descent baseline through Mitsuba's differentiable renderer (objcam.solvers.adam).
 
 Writes per target ``<target>/``: envmap.exr (full lat-long, 0 where unsolved), envmap_mask.png (255 = solved
 texel), prediction.exr, residual.exr (target - prediction, 0 at unused pixels), target.exr (the pooled target
-that was fitted), tonemapped PNGs of each, and solve.json.
+that was fitted), tonemapped PNGs of each, and solve.json; with unknown albedo also albedo.exr (pooled image
+size, 0 where not estimated), albedo.png and albedo_mask.png (255 where the albedo was unknown and estimated).
 """
 
 from __future__ import annotations
@@ -27,22 +39,53 @@ from objcam.threads import single_blas_thread
 
 NAME = "solve"
 DEPS = ("scene", "transport")
-VERSION = "1"
+VERSION = "2"
 CODE_DEPS = ("objcam.solvers", "objcam.transport")
+
+#: Known-albedo smoothness when ls is not given: measured best on the bundled path-traced targets, whose
+#: model error (indirect light, ~1-2% noise) GCV cannot see (bench/results.md).
+KNOWN_LS_REL = 0.1
+#: Joint solve: the smoothness of the first (provisional) solve that auto_reg's criterion is evaluated at.
+JOINT_LS0_REL = 1e-2
+#: Joint solve: lp when not given. With one illumination per camera the albedo of each pixel can absorb the whole
+#: image, so the albedo prior is what separates them; with two or more the data separate them and a smoothness
+#: prior only blurs the albedo's edges (bench/results.md, joint ablation).
+LP_ONE_ILLUMINATION = 1e-2
+
+SCALE_NOTE = ("unknown albedo: the envmap and the albedo are known only up to one scale per colour channel "
+              "(c * albedo and envmap / c fit the photos equally); the regularisers pick c, and evaluate "
+              "compares after the best-fit scale")
 
 
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    method: Literal["exact", "paper"] = Field("exact", description="exact bound-constrained minimiser, or the "
-                                              "method's damped Newton steps with clipping (baseline)")
-    # 0.1 measured best (tonemapped RMSE and SSIM) on the bundled demo and bench targets, whose path-tracing
-    # noise is ~1-2% per pixel; noise-free synthetic data prefer ~1e-4 (bench/results.md)
-    ls: float = Field(0.1, ge=0, description="smoothness weight, relative to mean(diag(A^T A))")
-    lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative to mean(diag(A^T A))")
+    method: Literal["exact", "paper", "adam"] = Field(
+        "exact", description="exact bound-constrained minimiser (joint: exact alternation), the method's damped "
+        "Newton steps with clipping (baseline), or Adam through Mitsuba's differentiable renderer (baseline)")
+    ls: float | None = Field(None, ge=0, description="smoothness weight, relative to mean(diag(A^T A)); None: "
+                             f"{KNOWN_LS_REL} with known albedo, chosen by auto_reg with unknown albedo")
+    lr: float | None = Field(None, ge=0, description=f"L2 (ridge) weight, relative; None: {DEFAULT_LR_REL}")
+    lp: float | None = Field(None, ge=0, description="albedo smoothness weight (unknown albedo), relative to the "
+                             f"albedo data term; None: 0 with >= 2 illuminations per camera, {LP_ONE_ILLUMINATION} "
+                             "with one")
+    auto_reg: Literal["gcv", "discrepancy", "lcurve", "off"] | None = Field(
+        None, description="rule choosing ls when ls is None; None: gcv with unknown albedo, off (ls = "
+        f"{KNOWN_LS_REL}) with known albedo, which keeps that path as fast as it was")
+    tol: float = Field(1e-6, gt=0, description="joint solve: stop when the relative objective decrease per "
+                       "sweep is below tol")
+    max_iter: int = Field(100, ge=1, description="joint solve: most sweeps (paper: most damped steps)")
+    alpha: float = Field(0.5, gt=0, description="joint method=paper: damping of the envmap step (Eq. 7)")
+    adam_lr: float = Field(0.05, gt=0, description="method=adam: learning rate (on log radiance / logit albedo)")
+    adam_seconds: float = Field(60.0, gt=0, description="method=adam: time budget (early stopping), seconds")
+    adam_max_iter: int = Field(2000, ge=1, description="method=adam: most iterations")
+    adam_spp: int = Field(4, ge=1, description="method=adam: samples per pixel of each differentiable render")
+
+
+# --------------------------------------------------------------------------------------------------- helpers
 
 
 def _pixels(transport, image: np.ndarray, valid: np.ndarray):
-    """The pooled target at A's rows: y (M, 3) and usable (M,) bool."""
+    """The pooled target at A's rows: pooled (H', W', 3), ok (H', W'), y (M, 3) and usable (M,) bool."""
     from objcam.transport import pool_target
 
     img, ok = pool_target(image, valid, transport.downsample)
@@ -51,33 +94,86 @@ def _pixels(transport, image: np.ndarray, valid: np.ndarray):
     return img, ok, y, use
 
 
-def run(inputs: StageInputs, params: Params) -> StageOutputs:
-    from objcam import solvers
-    from objcam.transport import load_transport
+def _texel_mask(grid: EnvGrid, texel_index: np.ndarray) -> np.ndarray:
+    mask = np.zeros(grid.n_texels, bool)
+    mask[texel_index] = True
+    return mask.reshape(grid.shape)
 
-    scene = SceneArtifact.load(inputs.upstream["scene"])
-    out = inputs.out
-    per_target: dict[str, dict] = {}
-    gram_cache: dict[tuple, np.ndarray] = {}
-    t_all = time.perf_counter()
+
+def _write_target(d, env, mask, pooled, pooled_ok, pred, info, albedo=None, albedo_mask=None) -> None:
+    """The per-target artifacts shared by every path (see the module docstring)."""
+    resid = np.where(pooled_ok[..., None], pooled - pred, 0.0)
+    write_exr(d / "envmap.exr", env)
+    write_png(d / "envmap_mask.png", mask.astype(float))
+    write_exr(d / "prediction.exr", pred)
+    write_exr(d / "residual.exr", resid)
+    write_exr(d / "target.exr", pooled)
+    write_tonemapped_png(d / "envmap.png", env)
+    ref = write_tonemapped_png(d / "target.png", pooled)
+    write_tonemapped_png(d / "prediction.png", pred, exposure_ref=ref)
+    write_tonemapped_png(d / "residual.png", np.abs(resid), exposure_ref=ref)
+    if albedo is not None:
+        write_exr(d / "albedo.exr", albedo)
+        write_png(d / "albedo.png", np.clip(albedo, 0, 1) ** (1 / 2.2))  # albedo is in [0, 1]: no exposure
+        write_png(d / "albedo_mask.png", albedo_mask.astype(float))
+    atomic_write_text(d / "solve.json", json.dumps(info, indent=2))
+
+
+def _loaded(scene, transport_dir):
+    """Per target: (Transport, pooled, pooled_ok, y (M, 3), use (M,)); one Transport per camera group."""
+    from objcam.transport import load_transport
+    from objcam.transport.storage import read_index
+
+    index = read_index(transport_dir)
+    by_group: dict[str, object] = {}
+    out = {}
     for target in scene.targets:
-        tr = load_transport(inputs.upstream["transport"], target.name)
+        g = index["targets"].get(target.name)
+        if g not in by_group:
+            by_group[g] = load_transport(transport_dir, target.name)
+        tr = by_group[g]
         image = target.load_image(scene.folder)
         valid = target.load_valid(scene.folder)
-        pooled, pooled_ok, y, use = _pixels(tr, image, valid)
+        pooled, ok, y, use = _pixels(tr, image, valid)
         if not use.any():
             raise StageError("no usable pixel sees the scene", scene.folder / target.image,
                              "check the camera pose and the valid mask")
+        out[target.name] = (tr, pooled, ok, y, use)
+    return out
+
+
+# --------------------------------------------------------------------------------------------- known albedo
+
+
+def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str, dict]:
+    from objcam import solvers
+
+    per_target: dict[str, dict] = {}
+    gram_cache: dict[tuple, np.ndarray] = {}
+    rule = params.auto_reg if params.auto_reg not in (None, "off") else None
+    lr = DEFAULT_LR_REL if params.lr is None else params.lr
+    for name in names:
+        target = scene.target(name)
+        tr, pooled, pooled_ok, y, use = data[name]
         grid = EnvGrid(tr.env_height)
         C = tr.A.shape[0]
         t0 = time.perf_counter()
         X, kkt, obj, iters = np.zeros((tr.A.shape[2], 3)), np.zeros(3), np.zeros(3), 0
         grams = None
+        auto_info = None
         with single_blas_thread():
+            ls = KNOWN_LS_REL if params.ls is None else params.ls
+            if params.ls is None and rule is not None:
+                # one weight for the target's channels: the criterion on the grey (channel-mean) transport
+                Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)
+                ls, _, inf = solvers.choose_weights(Ag, y[use], grid, tr.texel_index, rule=rule,
+                                                    sigma=_sigma(target, y[use], rule), lr=lr)
+                auto_info = {"rule": rule, "ls_relative": ls, "notes": inf["notes"],
+                             "seconds": round(inf["seconds"], 3)}
             for c in range(C):
-                # one Gram matrix per (A, channel, usable pixels): shared by every channel of a grey A and by
-                # every target that shares the camera and the valid mask
-                key = (str(tr.folder), c, hash(use.tobytes()))
+                # one Gram matrix per (A, channel, usable pixels, weights): shared by every channel of a grey A
+                # and by every target that shares the camera and the valid mask
+                key = (str(tr.folder), c, hash(use.tobytes()), ls, lr)
                 Ac = tr.A[c][use]
                 if key not in gram_cache:
                     # the transport stage stored A^T A over all kept pixels; remove the few excluded rows
@@ -85,7 +181,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                     G = grams[c]
                     if not use.all():
                         G = G - solvers.gram(tr.A[c][~use])
-                    ls_abs, lr_abs = solvers.absolute_weights(G, params.ls, params.lr)
+                    ls_abs, lr_abs = solvers.absolute_weights(G, ls, lr)
                     D = solvers.difference_operator(grid, tr.texel_index)
                     gram_cache[key] = solvers.regularized_gram(G, D, ls_abs, lr_abs)
                 Q = gram_cache[key]
@@ -99,35 +195,179 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         solve_s = time.perf_counter() - t0
 
         env = tr.envmap_from_x(X)
-        mask = np.zeros(grid.n_texels, bool)
-        mask[tr.texel_index] = True
-        mask = mask.reshape(grid.shape)
+        mask = _texel_mask(grid, tr.texel_index)
         pred = tr.predict(X)
-        resid = np.where(pooled_ok[..., None], pooled - pred, 0.0)
-
-        d = out / target.name
-        write_exr(d / "envmap.exr", env)
-        write_png(d / "envmap_mask.png", mask.astype(float))
-        write_exr(d / "prediction.exr", pred)
-        write_exr(d / "residual.exr", resid)
-        write_exr(d / "target.exr", pooled)
-        write_tonemapped_png(d / "envmap.png", env)
-        ref = write_tonemapped_png(d / "target.png", pooled)
-        write_tonemapped_png(d / "prediction.png", pred, exposure_ref=ref)
-        write_tonemapped_png(d / "residual.png", np.abs(resid), exposure_ref=ref)
-
         fit = pred.reshape(-1, 3)[tr.pixel_index][use]
         rel_res = float(np.linalg.norm(fit - y[use]) / max(np.linalg.norm(y[use]), 1e-30))
         info = {
-            "method": params.method, "texels": int(len(tr.texel_index)), "pixels_used": int(use.sum()),
-            "pixels_excluded": int((~use).sum()), "channels_in_A": int(C), "solve_seconds": round(solve_s, 4),
-            "iterations": int(iters), "kkt_residual_max": float(kkt.max()), "objective": obj.tolist(),
-            "relative_image_residual": rel_res, "ls_relative": params.ls, "lr_relative": params.lr,
+            "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
+            "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()), "channels_in_A": int(C),
+            "solve_seconds": round(solve_s, 4), "iterations": int(iters), "kkt_residual_max": float(kkt.max()),
+            "objective": obj.tolist(), "relative_image_residual": rel_res, "ls_relative": ls, "lr_relative": lr,
         }
-        atomic_write_text(d / "solve.json", json.dumps(info, indent=2))
-        per_target[target.name] = info
+        if auto_info:
+            info["auto_reg"] = auto_info
+        _write_target(out / name, env, mask, pooled, pooled_ok, pred, info)
+        per_target[name] = info
+    return per_target
+
+
+def _sigma(target, y: np.ndarray, rule: str) -> float | None:
+    """Absolute noise standard deviation of one pixel value for the discrepancy rule: the target's relative
+    ``noise_sigma`` (capture.toml) times its median positive pixel value."""
+    if rule != "discrepancy":
+        return None
+    if not target.noise_sigma:
+        raise StageError(f"auto_reg=discrepancy needs the noise level of target {target.name!r}",
+                         fix="give noise_sigma for the target in capture.toml, or use solve.auto_reg=gcv")
+    pos = y[y > 0]
+    return float(target.noise_sigma * (np.median(pos) if pos.size else 1.0))
+
+
+# ------------------------------------------------------------------------------------------- unknown albedo
+
+
+def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) -> dict[str, dict]:
+    """One joint problem (component ``comp``); writes its targets' artifacts and returns their solve.json."""
+    from objcam.solvers.assemble import grey_rho_free
+    from objcam.solvers.jointauto import JointSetup, solve_joint_auto
+
+    grid = EnvGrid(tr_of_cam[comp.cameras[0]].env_height)
+    cams = []
+    for cam in comp.cameras:
+        tr = tr_of_cam[cam]
+        tnames = [names_of[(cam, ill)] for ill in comp.illuminations]
+        use = np.logical_and.reduce([data[t][4] for t in tnames])
+        if not use.any():
+            raise StageError(f"no pixel is usable in every target of the camera of {tnames[0]!r} "
+                             f"({', '.join(tnames)})", scene.folder / scene.target(tnames[0]).image,
+                             "check the valid masks and saturation levels of these targets")
+        rows = np.flatnonzero(use)
+        A = grey_rho_free(tr, rows, comp.texel_index)
+        Y = np.stack([data[t][3][rows] for t in tnames], axis=1)  # (M, L, 3)
+        # start known pixels at their known albedo and unknown ones mid-range
+        rho0 = np.where(tr.unknown_albedo[rows, None], 0.5, np.clip(tr.albedo[rows], 1e-3, 1.0))
+        sig = [_sigma(scene.target(t), data[t][3][rows], params.auto_reg or "gcv") for t in tnames]
+        cams.append(dict(key=cam, tr=tr, rows=rows, A=A, Y=Y, rho0=rho0, targets=tnames, sigma=sig))
+    L = len(comp.illuminations)
+    setup = JointSetup(
+        method=params.method, ls=params.ls, lr=DEFAULT_LR_REL if params.lr is None else params.lr,
+        lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
+        rule=params.auto_reg or "gcv", ls0=JOINT_LS0_REL, tol=params.tol, max_iter=params.max_iter,
+        alpha=params.alpha)
+    t0 = time.perf_counter()
+    res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, c["rho0"])
+                                  for c in cams], grid, comp.texel_index, setup,
+                                 sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
+    solve_s = time.perf_counter() - t0
+    first_target = scene.target(cams[0]["targets"][0])
+    if res.diverged:
+        raise StageError(f"joint solve ({params.method}) {res.message}; nothing was written, the previous solve "
+                         "artifacts are kept", scene.folder / first_target.image,
+                         "use solve.method=exact (monotone) or a smaller solve.alpha")
+
+    mask = _texel_mask(grid, comp.texel_index)
+    per_target: dict[str, dict] = {}
+    for p, c in enumerate(cams):
+        tr, rows = c["tr"], c["rows"]
+        rho = res.rho[p]  # (M_used, 3)
+        hw = tr.image_shape[0] * tr.image_shape[1]
+        alb = np.zeros((hw, 3), np.float32)
+        alb[tr.pixel_index[rows]] = rho
+        alb_mask = np.zeros(hw, bool)
+        alb_mask[tr.pixel_index[rows][tr.unknown_albedo[rows]]] = True
+        for l, (ill, name) in enumerate(zip(comp.illuminations, c["targets"])):
+            x = res.x[:, l, :]  # (N_union, 3)
+            env = np.zeros((grid.n_texels, 3), np.float32)
+            env[comp.texel_index] = x
+            env = env.reshape(grid.height, grid.width, 3)
+            fit = rho * (c["A"].astype(np.float64) @ x)  # (M_used, 3)
+            pred = np.zeros((hw, 3), np.float32)
+            pred[tr.pixel_index[rows]] = fit
+            pooled, pooled_ok = data[name][1], data[name][2]
+            yv = c["Y"][:, l, :]
+            rel_res = float(np.linalg.norm(fit - yv) / max(np.linalg.norm(yv), 1e-30))
+            info = {
+                "method": params.method, "albedo": "unknown", "scale_ambiguous": True, "note": SCALE_NOTE,
+                "illumination": ill, "cameras_in_problem": len(cams), "illuminations_in_problem": L,
+                "targets_in_problem": [t for cc in cams for t in cc["targets"]],
+                "texels": int(comp.texel_index.size), "pixels_used": int(rows.size),
+                "pixels_excluded": int(tr.pixel_index.size - rows.size),
+                "pixels_albedo_estimated": int(alb_mask.sum()),
+                "solve_seconds": round(solve_s, 4), "iterations": int(res.iterations),
+                "converged": bool(res.converged), "message": res.message,
+                "kkt_residual_max": float(np.max(res.kkt_x)), "kkt_residual_albedo_max": float(np.max(res.kkt_rho)),
+                "objective": res.objective.tolist(), "objective_history": [float(v) for v in res.history],
+                "objective_step_history": [float(v) for v in res.step_history],
+                "relative_image_residual": rel_res,
+                "ls_relative": float(res.info["ls_rel"]), "lr_relative": float(res.info["lr_rel"]),
+                "lp_relative": float(res.info["lp_rel"]), "scale_at_clip": [bool(v) for v in res.scale_at_clip],
+                "auto_reg": auto,
+            }
+            _write_target(out / name, env, mask, pooled, pooled_ok, pred.reshape(*tr.image_shape, 3), info,
+                          albedo=alb.reshape(*tr.image_shape, 3), albedo_mask=alb_mask.reshape(tr.image_shape))
+            per_target[name] = info
+    return per_target
+
+
+# ----------------------------------------------------------------------------------------------------- run
+
+
+def run(inputs: StageInputs, params: Params) -> StageOutputs:
+    from objcam.solvers.assemble import components
+
+    scene = SceneArtifact.load(inputs.upstream["scene"])
+    out = inputs.out
+    t_all = time.perf_counter()
+    data = _loaded(scene, inputs.upstream["transport"])
+    if params.method == "adam":
+        per_target = _solve_adam(scene, data, params, out)
+    else:
+        pairs = [(str(data[t.name][0].folder), getattr(t, "illumination", "") or t.name, t.name)
+                 for t in scene.targets]
+        try:
+            comps = components(pairs)
+        except ValueError as e:
+            raise StageError(str(e), inputs.capture / "capture.toml",
+                             "fix the targets' illumination names in capture.toml") from None
+        tr_of_cam = {cam: data[t][0] for cam, _, t in pairs}
+        names_of = {(cam, ill): t for cam, ill, t in pairs}
+        per_target = {}
+        for comp in comps:
+            unknown = any(tr_of_cam[c].unknown_albedo.any() for c in comp.cameras)
+            names = [names_of[(c, i)] for c in comp.cameras for i in comp.illuminations]
+            if not unknown:
+                per_target.update(_solve_known(scene, data, params, out, names))
+                continue
+            comp.texel_index = np.unique(np.concatenate([tr_of_cam[c].texel_index for c in comp.cameras]))
+            per_target.update(_solve_unknown(scene, data, params, out, comp, tr_of_cam, names_of))
+        per_target = {t.name: per_target[t.name] for t in scene.targets}
     total = time.perf_counter() - t_all
     worst_kkt = max(v["kkt_residual_max"] for v in per_target.values())
-    summary = (f"{len(per_target)} target(s), {params.method}, {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
+    joint = any(v.get("albedo") == "unknown" for v in per_target.values())
+    summary = (f"{len(per_target)} target(s), {params.method}"
+               + (", joint albedo + envmap (envmap known only up to scale)" if joint else "")
+               + f", {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
                + ", ".join(f"{k}: image residual {v['relative_image_residual']:.3f}" for k, v in per_target.items()))
-    return StageOutputs(metrics={"targets": per_target, "seconds": round(total, 4)}, summary=summary)
+    metrics = {"targets": per_target, "seconds": round(total, 4)}
+    if joint:
+        metrics["scale_ambiguous"] = True
+    return StageOutputs(metrics=metrics, summary=summary)
+
+
+def _solve_adam(scene, data, params: Params, out) -> dict[str, dict]:
+    """method=adam: every target through objcam.solvers.adam (per camera group with unknown albedo)."""
+    from objcam.solvers.adam import AdamSettings, solve_adam_targets
+
+    settings = AdamSettings(lr=params.adam_lr, seconds=params.adam_seconds, max_iter=params.adam_max_iter,
+                            spp=params.adam_spp, ls=KNOWN_LS_REL if params.ls is None else params.ls,
+                            lr_ridge=DEFAULT_LR_REL if params.lr is None else params.lr,
+                            lp=0.0 if params.lp is None else params.lp)
+    per_target: dict[str, dict] = {}
+    for name, r in solve_adam_targets(scene, data, settings).items():
+        tr, pooled, pooled_ok = data[name][0], data[name][1], data[name][2]
+        grid = EnvGrid(tr.env_height)
+        _write_target(out / name, r.envmap, _texel_mask(grid, tr.texel_index), pooled, pooled_ok, r.prediction,
+                      r.info, albedo=r.albedo, albedo_mask=r.albedo_mask)
+        per_target[name] = r.info
+    return per_target
