@@ -67,6 +67,19 @@ def best_scale(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = Non
     return float(np.sum(e * t) / ee) if ee > 0 else 1.0
 
 
+def best_scale_channels(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """(C,) least-squares scale per channel over kept texels (or pixels): the ambiguity of a joint albedo/envmap
+    solve is one scale per colour channel; 1.0 for a channel whose estimate is 0 there.
+
+    est, truth: (H, W, C); mask: (H, W) bool (None: all)."""
+    est = np.asarray(est, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    m = np.ones(est.shape[:2], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    e, t = est[m], truth[m]
+    ee = np.sum(e * e, axis=0)
+    return np.where(ee > 0, np.sum(e * t, axis=0) / np.where(ee > 0, ee, 1.0), 1.0)
+
+
 def relative_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None,
                   solid_angle: bool = False) -> float:
     """RMSE / mean(truth) over kept texels and channels; per texel, or per steradian with ``solid_angle``."""
@@ -219,18 +232,28 @@ def brightest_angle_deg(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | N
 
 
 def envmap_metrics(est: np.ndarray, truth: np.ndarray, kept_mask: np.ndarray | None = None,
-                   scale_invariant: bool = False) -> dict[str, float]:
+                   scale_invariant: bool | str = False) -> dict[str, float]:
     """All envmap metrics as plain floats.
 
     est, truth: (H, 2H, 3) linear radiance on the same grid; kept_mask: (H, 2H) bool (None: all texels).
+    scale_invariant: False, True (one global :func:`best_scale`) or "channel" (:func:`best_scale_channels`, the
+    ambiguity of a joint albedo/envmap solve).
     Keys: ``relative_rmse`` (plain per texel, the headline), ``relative_rmse_solid_angle``, ``tonemapped_rmse``,
     ``ssim`` (tonemapped, mean over kept texels), ``brightest_angle_deg``, ``scale`` (the factor applied to est:
-    :func:`best_scale` when ``scale_invariant``, else 1.0) and ``best_scale`` (always reported).
+    :func:`best_scale` when ``scale_invariant``, else 1.0; with "channel" the mean of the per-channel factors,
+    listed in ``scale_channels``) and ``best_scale`` (always reported).
     """
     est, truth, m = _check(est, truth, kept_mask)
     s_best = best_scale(est, truth, m)
-    s = s_best if scale_invariant else 1.0
-    e = est * s
+    extra: dict = {}
+    if scale_invariant == "channel":
+        sc = best_scale_channels(est, truth, m)
+        e = est * sc
+        s = float(np.mean(sc))
+        extra["scale_channels"] = [float(v) for v in sc]
+    else:
+        s = s_best if scale_invariant else 1.0
+        e = est * s
     tm_s = tonemap_scale(truth, m)
     te = np.where(m[..., None], tonemap(e, tm_s), 0.0)
     tt = np.where(m[..., None], tonemap(truth, tm_s), 0.0)
@@ -242,6 +265,58 @@ def envmap_metrics(est: np.ndarray, truth: np.ndarray, kept_mask: np.ndarray | N
         "brightest_angle_deg": brightest_angle_deg(e, truth, m),
         "scale": float(s),
         "best_scale": float(s_best),
+        **extra,
+    }
+
+
+def image_ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, data_range: float = 1.0) -> float:
+    """SSIM of two ordinary (planar) images (H, W[, C]), mean over ``mask``: Wang et al. 2004 with the Gaussian
+    window of :func:`ssim_map` (sigma 1.5, radius 5) and mirror padding at the borders, averaged over channels."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+
+    def blur(x):
+        return ndimage.gaussian_filter(x, sigma=(SSIM_SIGMA, SSIM_SIGMA, 0), mode="mirror",
+                                       truncate=SSIM_RADIUS / SSIM_SIGMA)
+
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mu_a, mu_b = blur(a), blur(b)
+    saa = blur(a * a) - mu_a**2
+    sbb = blur(b * b) - mu_b**2
+    sab = blur(a * b) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))).mean(axis=-1)
+    return float(s.mean() if mask is None else s[np.asarray(mask, dtype=bool)].mean())
+
+
+def albedo_metrics(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """Errors of an estimated albedo image after the best-fit scale per channel (the joint solve's ambiguity).
+
+    est, truth: (H, W, 3) albedo in [0, 1] on the (pooled) image; mask: (H, W) bool, the pixels whose albedo was
+    estimated. ``albedo_relative_rmse``: RMSE / mean(truth) over the masked pixels and channels;
+    ``albedo_ssim``: :func:`image_ssim` (data range 1, both images 0 outside the mask), mean over the mask;
+    ``albedo_scale``: the per-channel factors applied to est; ``albedo_pixels``: the number of masked pixels.
+    """
+    est = np.asarray(est, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    if est.shape != truth.shape or m.shape != est.shape[:2]:
+        raise ValueError(f"albedo {est.shape}, truth {truth.shape} and mask {m.shape} do not match")
+    if not m.any():
+        raise ValueError("no pixel with an estimated albedo")
+    sc = best_scale_channels(est, truth, m)
+    e = np.where(m[..., None], est * sc, 0.0)
+    t = np.where(m[..., None], truth, 0.0)
+    d = e[m] - t[m]
+    mean = float(t[m].mean())
+    return {
+        "albedo_relative_rmse": float(np.sqrt(np.mean(d * d)) / mean) if mean > 0 else float("inf"),
+        "albedo_ssim": image_ssim(np.clip(e, 0, 1), np.clip(t, 0, 1), m),
+        "albedo_scale": [float(v) for v in sc],
+        "albedo_pixels": int(m.sum()),
     }
 
 

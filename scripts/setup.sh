@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Sets up objcam: Debian's libllvm19 (Mitsuba's fast llvm variant needs it) and .venv with pinned packages.
+# Sets up objcam: Debian's libllvm19 (Mitsuba's fast llvm variant needs it) and chromium (the report's browser test),
+# and .venv with pinned packages.
 # Idempotent; prints one clear line and exits non-zero when something cannot be done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -16,6 +17,20 @@ if ! have_llvm19; then
       || die "could not install libllvm19 with apt-get (log: /tmp/objcam-apt.log); install it by hand, or objcam falls back to Mitsuba's slow scalar_rgb variant"
   else
     echo "objcam setup: warning: libllvm19 missing and apt-get unavailable; Mitsuba will use the slow scalar_rgb variant" >&2
+  fi
+fi
+
+# headless Chromium: the report's browser test (tests/test_report_browser.py) drives it over the DevTools pipe.
+# Needed for `make test`: when it cannot be installed, that test fails and says so.
+have_chromium() { command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1; }
+if ! have_chromium; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  if command -v apt-get >/dev/null 2>&1 && { [ -z "$SUDO" ] || command -v sudo >/dev/null 2>&1; }; then
+    echo "objcam setup: installing chromium (headless browser for the report test)"
+    { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq chromium; } >/tmp/objcam-apt-chromium.log 2>&1 \
+      || echo "objcam setup: warning: could not install chromium with apt-get (log: /tmp/objcam-apt-chromium.log); tests/test_report_browser.py will fail until it is installed" >&2
+  else
+    echo "objcam setup: warning: chromium missing and apt-get unavailable; tests/test_report_browser.py will fail until it is installed" >&2
   fi
 fi
 

@@ -5,6 +5,7 @@
     objcam status CAPTURE                 done / stale / missing for every stage
     objcam synth OUT [--object bunny] [--envmap forest] ...
     objcam evaluate CAPTURE               metrics against truth/ (synthetic captures)
+    objcam design OUT [--mesh PATH] ...   compare occluders (bunny, sphere, coded mask, meshes); no capture
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import json
 import os
 import sys
 from pathlib import Path
+
+from rich.markup import escape
 
 from objcam.errors import ObjcamError
 from objcam.pipeline import graph
@@ -56,6 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     from objcam.pipeline.synth_cli import add_synth_args
 
     add_synth_args(p)
+    p = sub.add_parser("design", help="compare object-cameras (occluders) on one setup; no capture needed")
+    from objcam.design.cli import add_design_args
+
+    add_design_args(p)
     return ap
 
 
@@ -67,7 +74,7 @@ def _print_reports(console, reports, title: str) -> None:
         t.add_column(col, overflow="fold")
     for r in reports:
         style = {"ran": "green", "cached": "cyan", "failed": "red", "n/a": "dim"}.get(r.status, "")
-        t.add_row(r.stage, f"[{style}]{r.status}[/]", f"{r.seconds:.2f} s", r.summary)
+        t.add_row(r.stage, f"[{style}]{r.status}[/]", f"{r.seconds:.2f} s", escape(r.summary))
     console.print(t)
 
 
@@ -83,7 +90,7 @@ def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
         if rep.status == "n/a":
             return  # a photo stage on a known-geometry capture: the summary table lists it
         word = "skipped (unchanged)" if rep.status == "cached" else f"done in {rep.seconds:.2f} s"
-        console.print(f"[bold]{rep.stage}[/]: {word}  {rep.summary}")
+        console.print(f"[bold]{rep.stage}[/]: {word}  {escape(rep.summary)}")
 
     reports = pipe.run(until=until, force=args.force, only=only, on_stage=live)
     _print_reports(console, reports, f"objcam: {args.capture}")
@@ -103,7 +110,7 @@ def _status(args) -> int:
     for row in pipe.status():
         style = {"done": "green", "stale": "yellow", "missing": "red", "n/a": "dim"}[row["state"]]
         secs = f"{row['seconds']:.2f} s" if row["seconds"] is not None else ""
-        t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], row["summary"])
+        t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], escape(row["summary"]))
     _console().print(t)
     return 0
 
@@ -131,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
             from objcam.pipeline.synth_cli import run_synth
 
             return run_synth(args)
+        if args.command == "design":
+            from objcam.design.cli import run_design_cmd
+
+            return run_design_cmd(args)
         return _run(args, only=[args.command])
     except ObjcamError as e:
         print(f"objcam: error: {e}", file=sys.stderr)

@@ -8,9 +8,15 @@ exposure bracket.
   grid, reflectance-corrected, masked, area-averaged to the solve resolution.
 - :mod:`objcam.probe.optics`: reflection geometry and the ball's reflectance (calibration factor, Fresnel).
 - :mod:`objcam.probe.recover`: bracket checks + fit + unwrap in one call (:func:`recover_probe`).
-- :mod:`objcam.probe.synth`: synthetic chrome-ball brackets rendered with Mitsuba.
+- :mod:`objcam.probe.synth`: synthetic chrome-ball brackets rendered with Mitsuba (and written in the ingest
+  stage's contract, :func:`~objcam.probe.synth.write_ingest_probe`).
+- :mod:`objcam.probe.sources`: sources saturated in every frame (direction, lower-bound energy).
+- :mod:`objcam.probe.artifact`: the probe stage's files (objcam/stages/probe.py writes them);
+  :mod:`objcam.probe.truth`: :func:`~objcam.probe.truth.probe_truth`, the probe as evaluate's ground truth.
 
-Measured accuracy (synthetic Mitsuba brackets, chromium ball 5 cm at 35 cm, 25 deg elevation, merged 6-8 frame
+Measured accuracy, bilinear sampling (the unwrap now samples bicubically: less blur, see
+:mod:`objcam.probe.unwrap`; the probe stage's numbers are in bench/results.md, ``## Chrome-ball probe (issue 5)``)
+(synthetic Mitsuba brackets, chromium ball 5 cm at 35 cm, 25 deg elevation, merged 6-8 frame
 brackets with shot noise; centre fitted on the plane; probe area-averaged to 32 x 64 against the box-texel truth
 area-averaged the same way; per-texel relative RMSE over valid texels, ``objcam.metrics.relative_rmse``; in
 brackets: without the 3 x 3 texels around the brightest one):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -50,6 +51,15 @@ class ProbeResult:
             out["valid_texels"] = int(self.valid.sum())
             out["saturated_texels"] = int(self.saturated.sum())
         return out
+
+
+def fine_height(apparent_radius_px: float, multiple_of: int = 1) -> int:
+    """Rows of the fine unwrap grid for a ball of ``apparent_radius_px``: 512, or 1024 once a fine texel would be
+    coarser than one image pixel at the ball's centre (2 / r_px rad against pi / rows: r_px > 330), rounded up
+    to a multiple of ``multiple_of`` (the solve height it is area-averaged to)."""
+    rows = 512 if apparent_radius_px * np.pi / 2 <= 512 else 1024
+    m = max(int(multiple_of), 1)
+    return -(-rows // m) * m
 
 
 def ball_mask(camera: Camera, centre, radius: float) -> np.ndarray:
@@ -101,7 +111,8 @@ def recover_probe(hdr, camera: Camera, radius: float, *, known_centre=None, rest
                   approx_px=None, skip_contact: float = 1.0, height: int | None = None,
                   solve_height: int | None = None, reflectance: Reflectance | None = None,
                   max_incidence_deg: float = 80.0, camera_cone_deg: float = 10.0, min_valid_fraction: float = 0.5,
-                  source: str | Path | None = None) -> ProbeResult:
+                  interpolation: str = "cubic", source: str | Path | None = None,
+                  on_step: Callable[[str], None] | None = None) -> ProbeResult:
     """Ground-truth envmap from a chrome ball of ``radius`` metres in ``hdr``: a
     :class:`~objcam.capture.hdr.MergeResult` (bracket checks and saturation flags) or an (H, W, 3) array.
 
@@ -110,11 +121,14 @@ def recover_probe(hdr, camera: Camera, radius: float, *, known_centre=None, rest
     area-averaged to that many rows (``height`` must be a multiple). Radiance is in the units of ``hdr`` (a
     MergeResult's ``reference`` units: scene radiance times the longest exposure time, for a synthetic
     bracket). Other arguments: :func:`objcam.probe.fit.fit_ball`, :func:`objcam.probe.unwrap.unwrap`,
-    :meth:`objcam.probe.unwrap.ProbeEnvmap.downsample`.
+    :meth:`objcam.probe.unwrap.ProbeEnvmap.downsample`. ``on_step``: called with "fit", "unwrap", "downsample"
+    as each step starts (progress reporting).
     """
+    step = on_step or (lambda name: None)
     merge = hdr if hasattr(hdr, "radiance") else None
     if merge is not None:
         check_bracket(merge)
+    step("fit")
     fit = fit_ball(hdr, camera, radius, known_centre=known_centre, rests_on_plane=rests_on_plane,
                    approx_px=approx_px, skip_contact=skip_contact, source=source)
     sat_frac = 0.0
@@ -122,11 +136,13 @@ def recover_probe(hdr, camera: Camera, radius: float, *, known_centre=None, rest
         ball = ball_mask(camera, fit.centre_world, radius)
         check_bracket(merge, ball, "the chrome ball")
         sat_frac = float((~np.asarray(merge.valid, bool) & ball).sum() / max(ball.sum(), 1))
+    step("unwrap")
     if height is None:
-        height = 512 if fit.apparent_radius_px * np.pi / 2 <= 512 else 1024
+        height = fine_height(fit.apparent_radius_px, solve_height or 1)
     probe = unwrap(hdr, camera, fit.centre_world, radius, height=height, reflectance=reflectance,
-                   max_incidence_deg=max_incidence_deg, camera_cone_deg=camera_cone_deg)
+                   max_incidence_deg=max_incidence_deg, camera_cone_deg=camera_cone_deg, interpolation=interpolation)
     res = ProbeResult(fit, probe, ball_saturated_fraction=sat_frac)
     if solve_height is not None:
+        step("downsample")
         res.envmap, res.valid, res.saturated = probe.downsample(solve_height, min_valid_fraction)
     return res

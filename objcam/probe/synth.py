@@ -169,3 +169,23 @@ def make_bracket(clean: np.ndarray, times: Sequence[float] | None = None, *, n_f
     merge = merge_frames(frames, list(times))
     scale = float(merge.reference_time)
     return ProbeBracket(frames, list(times), merge, merge.radiance / np.float32(scale), scale)
+
+
+def write_ingest_probe(folder: Path, bracket: ProbeBracket, frame_folder: str = "probe") -> None:
+    """Write a merged bracket in the ingest stage's contract (``ingest/probes/<name>/``): ``image.exr`` (linear
+    RGB float32, exposure-normalised: scene radiance x 1 s, as :attr:`ProbeBracket.hdr`), ``valid.png`` (255 =
+    usable, 0 = saturated in every frame) and ``merge.json`` (as objcam.capture.photos writes it: frame file
+    names, their capture-relative ``folder``, ``exposure_times_s`` ascending, saturated fraction). For tests and benchmarks of the probe stage."""
+    import json
+
+    from objcam.image_io import atomic_write_text, write_exr, write_png
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_exr(folder / "image.exr", bracket.hdr)
+    valid = np.asarray(bracket.merge.valid, bool)
+    write_png(folder / "valid.png", valid.astype(np.float64))
+    info = {"frames": [Path(p).name for p in bracket.merge.paths], "folder": frame_folder,
+            "exposure_times_s": [float(t) for t in bracket.merge.times], "units": "per_second",
+            "saturated_fraction": float(1.0 - valid.mean()), "n_invalid": int((~valid).sum())}
+    atomic_write_text(folder / "merge.json", json.dumps(info, indent=2))

@@ -36,6 +36,15 @@ class Params(BaseModel):
     rank_tol: float = Field(1e-3, gt=0, lt=1, description="effective rank: singular values above tol x the largest")
 
 
+def _solved_ls(solve_dir, name: str, solve_params: dict) -> float:
+    """The relative smoothness weight the solve used for target ``name`` (its solve.json; ls may be chosen per
+    target from its noise)."""
+    try:
+        return float(json.loads((solve_dir / name / "solve.json").read_text())["ls_relative"])
+    except (FileNotFoundError, KeyError, TypeError, ValueError):
+        return float(solve_params.get("ls") or 0.1)
+
+
 def _gain_texels(grid: EnvGrid, texel_index: np.ndarray, brightest: int | None, k: int) -> list[int]:
     """Column indices: the brightest recovered texel, then texels spread in elevation and azimuth."""
     if k == 0:
@@ -98,7 +107,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             brightest = int(np.argmax(x_solved.mean(axis=1))) if x_solved.size else None
             cols = _gain_texels(grid, tr.texel_index, brightest, params.gain_directions)
             if cols:
-                ls_abs, _ = absolute_weights(G, solve_params["ls"], 0.0)
+                ls_rel = _solved_ls(solve_dir, target.name, solve_params)
+                ls_abs, _ = absolute_weights(G, ls_rel, 0.0)
                 R = an.regularizer(grid, tr.texel_index, ls_abs, lr)
                 rows = an.gain_images(A, R, cols, G=G)
                 imgs = an.scatter_to_image(rows, tr.pixel_index, tr.image_shape)

@@ -4,6 +4,14 @@ The true envmap is area-averaged (solid-angle exact) to the solve resolution and
 solve kept: relative RMSE, RMSE and SSIM of tonemapped maps, and the angle between brightest sources (see
 objcam/metrics.py). A capture without ``truth/`` gets an explicit "no truth" record, not a silent pass.
 
+Unknown albedo (the solve says so in solve.json): the envmap is known only up to one scale per colour channel,
+so it is compared after the best-fit scale per channel (``scale_invariant`` None, the default); and the albedo
+image (solve's albedo.exr) is compared with the true albedo over the pixels whose albedo was estimated
+(albedo_mask.png), after its own best-fit scale per channel: relative RMSE and SSIM (objcam.metrics.albedo_metrics).
+The true albedo per pixel is rendered the way the transport stage renders a known albedo: the truth's textures and
+values (truth/truth.json ``albedo``) put on the scene's meshes (the support plane's UVs re-made for the truth
+texture's extent), the same camera and sub-pixel samples through Mitsuba, the mean albedo of the samples that hit.
+
 Writes ``metrics.json`` ({target: metrics}), ``<target>/compare.png`` (truth | estimate | |error|, one
 exposure: the truth's 99th percentile, gamma 2.2) and ``<target>/overview.png`` (target photo | truth |
 estimate, with titles).
@@ -12,6 +20,8 @@ estimate, with titles).
 from __future__ import annotations
 
 import json
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -20,19 +30,21 @@ from pydantic import BaseModel, ConfigDict, Field
 from objcam.envmap import resample_to_height
 from objcam.figures import overview_figure
 from objcam.errors import InputError
-from objcam.image_io import atomic_write_text, read_exr, tonemap, write_png
+from objcam.image_io import atomic_write_text, read_exr, tonemap, write_exr, write_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
 
 NAME = "evaluate"
-DEPS = ("scene", "solve")
-VERSION = "1"
+DEPS = ("scene", "transport", "solve")
+OPTIONAL_DEPS = ("probe",)  # chrome-ball ground truth: used where the capture has no truth/ envmap
+VERSION = "2"
 CODE_DEPS = ("objcam.metrics",)
 
 
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    scale_invariant: bool = Field(False, description="fit the best global scale before comparing (unknown albedo)")
+    scale_invariant: bool | None = Field(None, description="fit the best global scale before comparing; None: a "
+                                         "scale per colour channel where the albedo was unknown, none elsewhere")
 
 
 def truth_envmap_path(capture: Path, target: str) -> Path | None:
@@ -65,6 +77,104 @@ def _compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarra
     write_png(path, np.concatenate([t, gap, e * grey, gap, err * grey], axis=1))
 
 
+def truth_albedo_image(capture: Path, scene_folder: Path, transport) -> np.ndarray | None:
+    """(H', W', 3) true albedo at the transport's kept pixels (0 elsewhere), or None without truth albedo.
+
+    Renders the truth's albedo (truth/truth.json ``albedo``: rgb or a texture, with ``extent`` for the plane) with
+    the primary samples of the transport stage (objcam.transport.geometry.primary_samples: same camera, pooling,
+    sub-pixel sample count and seed), so a pixel's truth is the footprint average the transport's albedo is.
+    """
+    from objcam.scene import AlbedoValue, MeshData, SceneDescription, make_plane
+    from objcam.transport.geometry import SceneGeometry, primary_samples
+
+    meta_path = capture / "truth" / "truth.json"
+    if not meta_path.is_file():
+        return None
+    meta = json.loads(meta_path.read_text()).get("albedo") or {}
+    desc = SceneDescription.model_validate_json((scene_folder / "scene.json").read_text())
+    with tempfile.TemporaryDirectory(prefix="objcam-truth-albedo-") as tmp:
+        root = Path(tmp)
+        shutil.copy(scene_folder / desc.object_mesh, root / "object.npz")
+        shutil.copy(scene_folder / desc.support_mesh, root / "support.npz")
+        values = {}
+        for key, have in (("object", desc.albedo_object), ("support", desc.albedo_support)):
+            e = meta.get(key)
+            if e is None:
+                if not have.known:
+                    return None  # unknown and no truth for it
+                src = scene_folder / have.texture if have.texture else None
+                if src is not None:
+                    shutil.copy(src, root / f"albedo_{key}.exr")
+                values[key] = AlbedoValue(texture=f"albedo_{key}.exr") if src is not None else AlbedoValue(rgb=have.rgb)
+                continue
+            if e.get("texture"):
+                write_exr(root / f"albedo_{key}.exr", read_exr(capture / e["texture"])[..., :3])
+                values[key] = AlbedoValue(texture=f"albedo_{key}.exr")
+                if key == "support" and desc.support_is_plane and e.get("extent"):
+                    # the scene made the plane without a texture: give it the UVs of the truth's texture extent
+                    v = MeshData.load_npz(root / "support.npz").vertices
+                    make_plane(float(v[:, 0].max() - v[:, 0].min()), float(e["extent"])).save(root / "support.npz")
+            else:
+                values[key] = AlbedoValue(rgb=tuple(float(x) for x in e["rgb"]))
+        d2 = desc.model_copy(update={"object_mesh": "object.npz", "support_mesh": "support.npz",
+                                     "albedo_object": values["object"], "albedo_support": values["support"]})
+        geo = SceneGeometry.load(d2, root)
+        n = int(transport.attrs.get("subpixel_samples") or 32)
+        s = primary_samples(geo, transport.camera, transport.downsample, n, transport.pixel_index,
+                            transport.image_shape[1], int(transport.attrs.get("seed") or 0))
+        alb = s.albedo()
+    img = np.zeros((transport.image_shape[0] * transport.image_shape[1], 3), np.float32)
+    img[transport.pixel_index] = alb
+    return img.reshape(transport.image_shape[0], transport.image_shape[1], 3)
+
+
+def _albedo_compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarray) -> None:
+    m = mask[..., None]
+    gap = np.ones((truth.shape[0], 2, 3))
+    t, e = np.where(m, truth, 0), np.where(m, est, 0)
+    write_png(path, np.concatenate([t, gap, e, gap, np.abs(e - t) * 4], axis=1).clip(0, 1) ** (1 / 2.2))
+
+
+def _albedo_results(inputs: StageInputs, scene, solve_dir: Path, names: list[str]) -> dict[str, dict]:
+    """Albedo metrics per target whose solve estimated an albedo; one truth render per camera group."""
+    import cv2
+
+    from objcam.metrics import albedo_metrics
+    from objcam.transport import load_transport
+    from objcam.transport.storage import read_index
+
+    index = read_index(inputs.upstream["transport"])
+    truths: dict[str, np.ndarray | None] = {}
+    out = {}
+    for name in names:
+        d = solve_dir / name
+        if not (d / "albedo.exr").is_file():
+            continue
+        group = index["targets"][name]
+        if group not in truths:
+            tr = load_transport(inputs.upstream["transport"], name, load_A=False)
+            truths[group] = truth_albedo_image(inputs.capture, scene.folder, tr)
+        truth = truths[group]
+        if truth is None:
+            continue
+        est = read_exr(d / "albedo.exr")[..., :3].astype(np.float64)
+        mask = cv2.imread(str(d / "albedo_mask.png"), cv2.IMREAD_UNCHANGED) > 127
+        if not mask.any():
+            continue
+        out[name] = albedo_metrics(est, truth, mask)
+        _albedo_compare_png(inputs.out / name / "albedo_compare.png", truth, est * out[name]["albedo_scale"], mask)
+    return out
+
+
+def _probe_truth(inputs: StageInputs, target, height: int):
+    """(envmap (H, 2H, 3), valid (H, 2H)) from the probe stage for the target's illumination, or None."""
+    if "probe" not in inputs.upstream:
+        return None
+    from objcam.probe.truth import probe_truth
+
+    return probe_truth(inputs.upstream["probe"], target.illumination or target.name, height)
+
+
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
     import cv2
 
@@ -75,29 +185,49 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     results: dict[str, dict] = {}
     for target in scene.targets:
         tpath = truth_envmap_path(inputs.capture, target.name)
-        if tpath is None:
-            continue
         est = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].astype(np.float64)
         mask = cv2.imread(str(solve_dir / target.name / "envmap_mask.png"), cv2.IMREAD_UNCHANGED) > 127
-        truth_full = read_exr(tpath)[..., :3].astype(np.float64)
-        if truth_full.shape[1] != 2 * truth_full.shape[0]:
-            raise InputError(f"truth envmap is {truth_full.shape[1]}x{truth_full.shape[0]}, not 2H x H", tpath)
-        truth = resample_to_height(truth_full, est.shape[0])
-        m = envmap_metrics(est, truth, mask, scale_invariant=params.scale_invariant)
+        unknown = json.loads((solve_dir / target.name / "solve.json").read_text()).get("albedo") == "unknown"
+        inv = params.scale_invariant if params.scale_invariant is not None else ("channel" if unknown else False)
+        source = "truth"
+        if tpath is None:
+            probe = _probe_truth(inputs, target, est.shape[0])
+            if probe is None:
+                continue
+            truth, probe_valid = probe
+            mask = mask & probe_valid  # only texels the ball shows
+            source = "probe"
+            # the probe's radiance is in the photos' units, not the targets' exposure: compare up to scale
+            inv = inv or True
+        else:
+            truth_full = read_exr(tpath)[..., :3].astype(np.float64)
+            if truth_full.shape[1] != 2 * truth_full.shape[0]:
+                raise InputError(f"truth envmap is {truth_full.shape[1]}x{truth_full.shape[0]}, not 2H x H",
+                                 tpath)
+            truth = resample_to_height(truth_full, est.shape[0])
+        if not mask.any():
+            continue
+        m = envmap_metrics(est, truth, mask, scale_invariant=inv)
         # strict JSON: an undefined metric (e.g. no bright source in an all-zero estimate) is null, not NaN
         m = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in m.items()}
-        m["truth_file"] = str(tpath.relative_to(inputs.capture))
+        m["truth_source"] = source
+        m["truth_file"] = (str(tpath.relative_to(inputs.capture)) if tpath is not None
+                           else f"objcam/probe/ ({target.illumination or target.name})")
         results[target.name] = m
+        est = est * np.asarray(m.get("scale_channels", m["scale"]))  # the figures show what was compared
         _compare_png(inputs.out / target.name / "compare.png", truth, est, mask)
         overview_figure(inputs.out / target.name / "overview.png",
                         read_exr(solve_dir / target.name / "target.exr")[..., :3], truth, est, mask,
                         title=f"{target.name}: SSIM {m['ssim']:.3f}, relative RMSE {m['relative_rmse']:.3f}")
 
+    for name, am in _albedo_results(inputs, scene, solve_dir, list(results)).items():
+        results[name].update(am)
     if not results:
         atomic_write_text(inputs.out / "metrics.json", json.dumps({"truth": False}, indent=2))
         return StageOutputs(metrics={"truth": False}, summary="no truth/ in the capture: nothing to compare")
     atomic_write_text(inputs.out / "metrics.json", json.dumps(results, indent=2))
-    keys = ("relative_rmse", "tonemapped_rmse", "ssim", "brightest_angle_deg")
+    keys = ("relative_rmse", "tonemapped_rmse", "ssim", "brightest_angle_deg", "albedo_relative_rmse",
+            "albedo_ssim")
     mean = {k: float(np.mean([r[k] for r in results.values() if r.get(k) is not None])) for k in keys
             if any(r.get(k) is not None for r in results.values())}
     summary = ", ".join(f"{k} {v:.3f}" for k, v in mean.items()) + f" (mean of {len(results)} target(s))"

@@ -7,8 +7,9 @@ target that shares A and its valid pixels.
 
 Unknown albedo: the joint solve (objcam.solvers.joint) of ``y_l = diag(rho_p) A'_p x_l`` for the albedo rho_p of
 every camera p and the envmap x_l of every illumination l, grouped as objcam.solvers.assemble says (targets of one
-camera share rho; targets with the same ``illumination`` name in capture.toml share x). The regularisation weight
-ls is chosen per joint problem by ``auto_reg`` (default GCV, bench/results.md) unless given. The envmap and the
+camera share rho; targets with the same ``illumination`` name in capture.toml share x). The smoothness weight
+ls may be chosen per problem by ``auto_reg`` (objcam.solvers.jointauto); the default is a measured fixed weight
+(bench/results.md, "Joint solve ablation"). The envmap and the
 albedo are then known only up to one scale per colour channel (c rho, x / c fit equally): solve.json says so and
 evaluate compares after the best-fit scale.
 
@@ -42,11 +43,22 @@ DEPS = ("scene", "transport")
 VERSION = "2"
 CODE_DEPS = ("objcam.solvers", "objcam.transport")
 
-#: Known-albedo smoothness when ls is not given: measured best on the bundled path-traced targets, whose
+#: Unknown-albedo smoothness when ls is not given: measured best on the bundled path-traced targets, whose
 #: model error (indirect light, ~1-2% noise) GCV cannot see (bench/results.md).
 KNOWN_LS_REL = 0.1
-#: Joint solve: the smoothness of the first (provisional) solve that auto_reg's criterion is evaluated at.
+#: Known albedo, ls not given: ls = factor x sigma^2 (sigma: relative pixel noise), clipped to LS_RANGE. Measured
+#: with the edge prior (bench/results.md): best ls ~1e-4-1e-3 at 0.1% noise, 0.03-0.1 at 1.2-2.2% noise.
+LS_NOISE_FACTOR = 300.0
+LS_RANGE = (3e-4, 0.3)
+#: Joint solve with auto_reg: the smoothness (relative to A', albedo 1) of the provisional solve whose albedo the
+#: criterion is evaluated at. On the 3-illumination 'dots' scene (bench/results.md) GCV, the discrepancy principle
+#: and the L-curve all chose the floor of their grid (~1e-8: envmap SSIM 0.10 against 0.31-0.34 at fixed weights),
+#: because the residual is dominated by model error (interreflections rendered at albedo 1, shadow discretisation)
+#: that none of them models; hence auto_reg is off by default.
 JOINT_LS0_REL = 1e-2
+#: Joint solve: stop when a sweep lowers the objective by less than this fraction (sweeps 8-11 at 1e-5 and 1e-6
+#: changed no metric in the third decimal on the bench scene, and each sweep costs 3 Gram matrices).
+JOINT_TOL = 1e-4
 #: Joint solve: lp when not given. With one illumination per camera the albedo of each pixel can absorb the whole
 #: image, so the albedo prior is what separates them; with two or more the data separate them and a smoothness
 #: prior only blurs the albedo's edges (bench/results.md, joint ablation).
@@ -62,16 +74,25 @@ class Params(BaseModel):
     method: Literal["exact", "paper", "adam"] = Field(
         "exact", description="exact bound-constrained minimiser (joint: exact alternation), the method's damped "
         "Newton steps with clipping (baseline), or Adam through Mitsuba's differentiable renderer (baseline)")
-    ls: float | None = Field(None, ge=0, description="smoothness weight, relative to mean(diag(A^T A)); None: "
-                             f"{KNOWN_LS_REL} with known albedo, chosen by auto_reg with unknown albedo")
-    lr: float | None = Field(None, ge=0, description=f"L2 (ridge) weight, relative; None: {DEFAULT_LR_REL}")
+    ls: float | None = Field(None, ge=0, description="smoothness weight, relative to mean(diag(A^T A)) (unknown "
+                             "albedo: A = diag(rho0) A' at the initial albedo, known values and 0.5); None: from "
+                             "the target's noise (known albedo: ls_noise_factor x sigma^2) or "
+                             f"{KNOWN_LS_REL} (unknown albedo); replaced by the auto_reg choice unless it is off")
+    prior: Literal["edges", "smooth"] = Field("edges", description="known albedo: edge-preserving (Huber) "
+                                              "smoothness, solved exactly by reweighting, or the plain quadratic "
+                                              "smoothness (one exact solve; fastest)")
+    edge_steps: int = Field(6, ge=1, le=50, description="prior=edges: most reweighting steps")
+    edge_eps: float = Field(0.05, gt=0, description="prior=edges: Huber threshold relative to the RMS edge")
+    ls_noise_factor: float = Field(LS_NOISE_FACTOR, gt=0, description="ls = factor x (relative noise)^2 when ls "
+                                   "is None (noise: the target's noise_sigma, else estimated from the image)")
+    lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
     lp: float | None = Field(None, ge=0, description="albedo smoothness weight (unknown albedo), relative to the "
                              f"albedo data term; None: 0 with >= 2 illuminations per camera, {LP_ONE_ILLUMINATION} "
                              "with one")
-    auto_reg: Literal["gcv", "discrepancy", "lcurve", "off"] | None = Field(
-        None, description="rule choosing ls when ls is None; None: gcv with unknown albedo, off (ls = "
-        f"{KNOWN_LS_REL}) with known albedo, which keeps that path as fast as it was")
-    tol: float = Field(1e-6, gt=0, description="joint solve: stop when the relative objective decrease per "
+    auto_reg: Literal["gcv", "discrepancy", "lcurve", "off"] = Field(
+        "off", description="rule choosing ls when ls is None (both albedo cases); off: the measured defaults "
+        "(bench/results.md: on path-traced targets every rule picked far too little smoothing)")
+    tol: float = Field(JOINT_TOL, gt=0, description="joint solve: stop when the relative objective decrease per "
                        "sweep is below tol")
     max_iter: int = Field(100, ge=1, description="joint solve: most sweeps (paper: most damped steps)")
     alpha: float = Field(0.5, gt=0, description="joint method=paper: damping of the envmap step (Eq. 7)")
@@ -150,8 +171,8 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
 
     per_target: dict[str, dict] = {}
     gram_cache: dict[tuple, np.ndarray] = {}
-    rule = params.auto_reg if params.auto_reg not in (None, "off") else None
-    lr = DEFAULT_LR_REL if params.lr is None else params.lr
+    rule = params.auto_reg if params.auto_reg != "off" else None
+    lr = params.lr
     for name in names:
         target = scene.target(name)
         tr, pooled, pooled_ok, y, use = data[name]
@@ -162,14 +183,20 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
         grams = None
         auto_info = None
         with single_blas_thread():
-            ls = KNOWN_LS_REL if params.ls is None else params.ls
-            if params.ls is None and rule is not None:
+            ls, ls_source = params.ls, "param"
+            if ls is None:
+                ls, ls_source = _noise_ls(target, pooled, pooled_ok, params)
+            if rule is not None:
                 # one weight for the target's channels: the criterion on the grey (channel-mean) transport
                 Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)
                 ls, _, inf = solvers.choose_weights(Ag, y[use], grid, tr.texel_index, rule=rule,
                                                     sigma=_sigma(target, y[use], rule), lr=lr)
                 auto_info = {"rule": rule, "ls_relative": ls, "notes": inf["notes"],
                              "seconds": round(inf["seconds"], 3)}
+                ls_source = f"auto_reg {rule}"
+            if params.prior == "edges" and params.method == "exact":
+                X, kkt, obj, iters, edge_info = _solve_edges(tr, grid, use, y, ls, lr, params)
+                C = 0  # done: skip the quadratic loop below
             for c in range(C):
                 # one Gram matrix per (A, channel, usable pixels, weights): shared by every channel of a grey A
                 # and by every target that shares the camera and the valid mask
@@ -204,12 +231,63 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
             "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()), "channels_in_A": int(C),
             "solve_seconds": round(solve_s, 4), "iterations": int(iters), "kkt_residual_max": float(kkt.max()),
             "objective": obj.tolist(), "relative_image_residual": rel_res, "ls_relative": ls, "lr_relative": lr,
+            "ls_source": ls_source, "prior": params.prior if params.method == "exact" else "smooth",
         }
+        if params.prior == "edges" and params.method == "exact":
+            info["edges"] = edge_info
         if auto_info:
             info["auto_reg"] = auto_info
         _write_target(out / name, env, mask, pooled, pooled_ok, pred, info)
         per_target[name] = info
     return per_target
+
+
+def _noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: Params) -> tuple[float, str]:
+    """ls from the target's relative noise sigma: ls_noise_factor x sigma^2 within LS_RANGE (the noise sets how
+    much the data can be trusted against the prior)."""
+    from objcam.transport.auto import estimate_relative_noise
+
+    sigma, source = target.noise_sigma, "noise_sigma"
+    if not sigma:
+        sigma, source = estimate_relative_noise(pooled, pooled_ok), "estimated noise"
+    if not sigma:
+        return KNOWN_LS_REL, "default (noise unknown)"
+    ls = float(np.clip(params.ls_noise_factor * sigma**2, *LS_RANGE))
+    return ls, f"{source} {sigma:.4f}"
+
+
+def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float, params: Params):
+    """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info."""
+    from objcam import solvers
+    from objcam.solvers.edges import solve_edges
+
+    grams_all = tr.gram()
+    C = tr.A.shape[0]
+    grams, rhs, chans = [], [], []
+    Y = y[use]
+    for c in range(C):
+        G = grams_all[c]
+        if not use.all():
+            G = G - solvers.gram(tr.A[c][~use])
+        ch = [0, 1, 2] if C == 1 else [c]
+        grams.append(G)
+        rhs.append(solvers.rhs(tr.A[c][use], Y[:, ch]))
+        chans.append(ch)
+    ls_abs, lr_abs = solvers.absolute_weights(grams[0] if C == 1 else sum(grams) / C, ls, lr)
+    D = solvers.difference_operator(grid, tr.texel_index)
+    res = solve_edges(grams, rhs, chans, np.einsum("ij,ij->j", Y, Y), D, ls_abs, lr_abs, steps=params.edge_steps,
+                      eps_rel=params.edge_eps)
+    kkt = np.zeros(3)
+    iters = 0
+    for r, ch in zip(res.results, chans):
+        kkt[ch] = r.kkt_residual
+        iters += r.iterations
+    obj = np.full(3, res.objective_history[-1] / 3)
+    hist = res.objective_history
+    info = {"steps": res.steps, "objective_history": hist, "edge_scale": res.edge_scale,
+            "edges_above_threshold": round(res.kept_edges, 4),
+            "monotone": bool(all(b <= a * (1 + 1e-9) for a, b in zip(hist, hist[1:])))}
+    return res.x, kkt, obj, iters, info
 
 
 def _sigma(target, y: np.ndarray, rule: str) -> float | None:
@@ -247,13 +325,18 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         Y = np.stack([data[t][3][rows] for t in tnames], axis=1)  # (M, L, 3)
         # start known pixels at their known albedo and unknown ones mid-range
         rho0 = np.where(tr.unknown_albedo[rows, None], 0.5, np.clip(tr.albedo[rows], 1e-3, 1.0))
-        sig = [_sigma(scene.target(t), data[t][3][rows], params.auto_reg or "gcv") for t in tnames]
+        sig = [_sigma(scene.target(t), data[t][3][rows], params.auto_reg) for t in tnames]
         cams.append(dict(key=cam, tr=tr, rows=rows, A=A, Y=Y, rho0=rho0, targets=tnames, sigma=sig))
     L = len(comp.illuminations)
+    # the joint solve's weights are relative to A' (albedo 1); ls and lr are relative to A = diag(rho0) A', as for
+    # a known albedo, so one number means one prior strength in both cases
+    num = sum(float(np.sum((c["rho0"] ** 2).mean(axis=1) @ (c["A"].astype(np.float64) ** 2))) for c in cams)
+    den = sum(float(np.sum(np.einsum("mn,mn->n", c["A"], c["A"], dtype=np.float64))) for c in cams)
+    conv = num / den if den > 0 else 1.0
     setup = JointSetup(
-        method=params.method, ls=params.ls, lr=DEFAULT_LR_REL if params.lr is None else params.lr,
+        method=params.method, ls=None if params.auto_reg != "off" else (params.ls if params.ls is not None else KNOWN_LS_REL) * conv, lr=params.lr * conv,
         lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
-        rule=params.auto_reg or "gcv", ls0=JOINT_LS0_REL, tol=params.tol, max_iter=params.max_iter,
+        rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=params.tol, max_iter=params.max_iter,
         alpha=params.alpha)
     t0 = time.perf_counter()
     res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, c["rho0"])
@@ -300,7 +383,8 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "objective": res.objective.tolist(), "objective_history": [float(v) for v in res.history],
                 "objective_step_history": [float(v) for v in res.step_history],
                 "relative_image_residual": rel_res,
-                "ls_relative": float(res.info["ls_rel"]), "lr_relative": float(res.info["lr_rel"]),
+                "ls_relative": float(res.info["ls_rel"]) / conv, "lr_relative": float(res.info["lr_rel"]) / conv,
+                "ls_relative_to_rho_free_A": float(res.info["ls_rel"]),
                 "lp_relative": float(res.info["lp_rel"]), "scale_at_clip": [bool(v) for v in res.scale_at_clip],
                 "auto_reg": auto,
             }
@@ -360,8 +444,7 @@ def _solve_adam(scene, data, params: Params, out) -> dict[str, dict]:
     from objcam.solvers.adam import AdamSettings, solve_adam_targets
 
     settings = AdamSettings(lr=params.adam_lr, seconds=params.adam_seconds, max_iter=params.adam_max_iter,
-                            spp=params.adam_spp, ls=KNOWN_LS_REL if params.ls is None else params.ls,
-                            lr_ridge=DEFAULT_LR_REL if params.lr is None else params.lr,
+                            spp=params.adam_spp, ls=params.ls if params.ls is not None else KNOWN_LS_REL, lr_ridge=params.lr,
                             lp=0.0 if params.lp is None else params.lp)
     per_target: dict[str, dict] = {}
     for name, r in solve_adam_targets(scene, data, settings).items():

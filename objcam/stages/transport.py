@@ -49,6 +49,9 @@ class Params(BaseModel):
     correction_spp: int = Field(32, ge=1)
     correction_texel_block: int = Field(4, ge=1, description="auto: indirect rendered per g x g texel block "
                                                              "(bilinearly interpolated between blocks)")
+    correction_detail_px: int = Field(3, ge=-1, description="auto: pixels within this many (pooled) pixels of the "
+                                      "object get their own indirect render, not the coarse image's (-1: none)")
+    correction_detail_spp: int = Field(128, ge=1, description="auto: spp of those per-pixel indirect renders")
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:

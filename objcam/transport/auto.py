@@ -79,11 +79,30 @@ def to_rgb(cols: np.ndarray) -> np.ndarray:
     return np.repeat(cols, 3, axis=0).transpose(1, 0, 2) if cols.shape[0] == 1 else cols.transpose(1, 0, 2)
 
 
-def indirect_render(pr: PathRenderer, env: np.ndarray, spp: int, max_depth: int, seed: int, scale: int) -> np.ndarray:
-    """(M, 3) radiance of paths with >= 2 bounces: render(max_depth) - render(2), same seed."""
-    full = pr.render(env, spp, max_depth, seed, scale=scale)
-    direct = pr.render(env, spp, 2, seed, scale=scale)
+def indirect_render(pr: PathRenderer, env: np.ndarray, spp: int, max_depth: int, seed: int, scale: int,
+                    detail: np.ndarray | None = None, detail_spp: int | None = None) -> np.ndarray:
+    """(M, 3) radiance of paths with >= 2 bounces: render(max_depth) - render(2), same seed (``detail``: see
+    :meth:`PathRenderer.render`)."""
+    full = pr.render(env, spp, max_depth, seed, scale=scale, detail=detail, detail_spp=detail_spp)
+    direct = pr.render(env, spp, 2, seed, scale=scale, detail=detail, detail_spp=detail_spp)
     return full - direct
+
+
+def detail_pixels(object_fraction: np.ndarray, pixel_index: np.ndarray, shape: tuple[int, int],
+                  radius: int) -> np.ndarray:
+    """(M,) bool: kept pixels within ``radius`` pooled pixels of a pixel that sees the object. There the indirect
+    light changes abruptly (the object is lit from below by the support, the support beside the object by the
+    object), so the correction is rendered per pixel there instead of interpolated from a coarse image."""
+    from scipy.ndimage import binary_dilation
+
+    if radius < 0:
+        return np.zeros(pixel_index.shape, bool)
+    img = np.zeros(shape[0] * shape[1], bool)
+    img[pixel_index[object_fraction > 0]] = True
+    img = img.reshape(shape)
+    if radius > 0:
+        img = binary_dilation(img, structure=np.ones((2 * radius + 1, 2 * radius + 1), bool))
+    return img.reshape(-1)[pixel_index]
 
 
 def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: int, max_depth: int, seed: int,
@@ -126,8 +145,10 @@ class IndirectCorrection:
     """
 
     def __init__(self, pr: PathRenderer, texel_index: np.ndarray, env_height: int, block: int, spp: int,
-                 max_depth: int, seed: int, scale: int):
+                 max_depth: int, seed: int, scale: int, detail: np.ndarray | None = None,
+                 detail_spp: int | None = None):
         self.pr = pr
+        self.detail, self.detail_spp = detail, detail_spp
         self.grid = EnvGrid(env_height)
         self.texel_index = np.asarray(texel_index, dtype=np.int64)
         self.g = max(1, int(block))
@@ -182,7 +203,8 @@ class IndirectCorrection:
         if b not in self._cache:
             texels = np.nonzero(self.block_all == b)[0]
             env = self.pr.onehot(texels)
-            d = indirect_render(self.pr, env, self.spp, self.max_depth, self.seed * 104729 + b, self.scale)
+            d = indirect_render(self.pr, env, self.spp, self.max_depth, self.seed * 104729 + b, self.scale,
+                                self.detail, self.detail_spp)
             self._cache[b] = (d / self.block_omega[b]).astype(np.float32)
             self.renders += 2
         return self._cache[b]

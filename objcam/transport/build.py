@@ -38,6 +38,8 @@ class BuildSettings:
     correction_scale: int = 4
     correction_spp: int = 32
     correction_texel_block: int = 4
+    correction_detail_px: int = 3
+    correction_detail_spp: int = 128
     pair_budget: int = 1 << 22  # (pixel, texel) pairs classified per block
 
 
@@ -123,7 +125,7 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
 
     chosen = "direct" if model == "auto" else model
     if model == "auto" and texel_index.size:
-        from objcam.transport.auto import IndirectCorrection, choose_columns, measure
+        from objcam.transport.auto import IndirectCorrection, choose_columns, detail_pixels, measure
         from objcam.transport.path import PathRenderer
 
         noise, source = target_noise if target_noise is not None else (0.01, "assumed")
@@ -140,8 +142,12 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
             metrics["mitsuba_envmap_column_offset"] = pr.column_offset
         if rep.choice != "direct":
             t1 = time.perf_counter()
+            detail = detail_pixels(samples.object_fraction(), samples.pixel_index, (hp, wp),
+                                   s.correction_detail_px)
             corr = IndirectCorrection(pr, texel_index, s.env_height, s.correction_texel_block, s.correction_spp,
-                                      s.auto_max_depth, s.seed, s.correction_scale)
+                                      s.auto_max_depth, s.seed, s.correction_scale, detail,
+                                      s.correction_detail_spp)
+            metrics["correction_detail_pixels"] = int(detail.sum())
             writer.flush()
             corr.compute_all()
             add_to_columns(folder, lambda a, b: corr.columns(a, b, channels))

@@ -97,24 +97,34 @@ class PathRenderer:
         env[r, c] = 1.0 if weights is None else np.asarray(weights, np.float32)[:, None]
         return env
 
-    def render(self, env: np.ndarray, spp: int, max_depth: int, seed: int, scale: int = 1) -> np.ndarray:
+    def render(self, env: np.ndarray, spp: int, max_depth: int, seed: int, scale: int = 1,
+               detail: np.ndarray | None = None, detail_spp: int | None = None) -> np.ndarray:
         """(M, 3) radiance of the kept pooled pixels under ``env`` (H, 2H, 3).
 
         scale > 1 renders a coarser image (pooled pixels grouped by ``scale``) and interpolates it bilinearly at
-        the kept pixels' centres: for smooth signals (indirect light) only.
+        the kept pixels' centres: for smooth signals (indirect light) only. ``detail`` (M,) bool marks pixels
+        rendered at their own footprint instead (``detail_spp`` samples, default ``spp``): where the signal is
+        not smooth, e.g. on and around the object, whose indirect light differs from the plane's beside it.
         """
         from objcam.render import render_image, render_rays
 
         self._set_env(env)
         self.renders += 1
         cam = self.pooled
-        if scale <= 1:
-            row, col = np.divmod(self.pixel_index, cam.width)
-            return render_rays(self.geo.mi_scene, col.astype(np.float32), row.astype(np.float32), cam, spp,
+
+        def exact(pix: np.ndarray, n: int) -> np.ndarray:
+            row, col = np.divmod(pix, cam.width)
+            return render_rays(self.geo.mi_scene, col.astype(np.float32), row.astype(np.float32), cam, n,
                                max_depth, seed)
+
+        if scale <= 1:
+            return exact(self.pixel_index, spp)
         coarse = scaled_camera(cam, scale)
         img = render_image(self.geo.mi_scene, coarse, spp, max_depth, seed)
-        return upsample_at(img, self.pixel_index, cam.width, scale)
+        out = upsample_at(img, self.pixel_index, cam.width, scale)
+        if detail is not None and detail.any():
+            out[detail] = exact(self.pixel_index[detail], int(detail_spp or spp))
+        return out
 
 
 def upsample_at(img: np.ndarray, pixel_index: np.ndarray, width: int, scale: int) -> np.ndarray:

@@ -1,0 +1,241 @@
+"""``method=adam``: the method's baseline, gradient descent with Adam through Mitsuba 3's differentiable renderer.
+
+It exists to be beaten, and to be fair to, so it minimises OUR objective over the same unknowns:
+
+    F = sum_l ||rho * render(x_l) - y_l||^2 + ls s ||D x_l||^2 + lr s ||x_l||^2  (+ lp t ||G rho||^2)
+
+per target l of one camera (pooled pixels at the transport's kept rows that are usable; rho per pixel and channel,
+shared by the camera's targets, estimated where the albedo is unknown and fixed at the known albedo elsewhere;
+``s`` the data scale mean(diag(A^T A)), A = diag(rho0) A' at the initial albedo, so the relative weights mean what they mean for the exact
+solve). Parameterisation: x = exp(theta) per kept texel and channel (positive, scale-free steps for radiances
+spanning 4 decades), rho = sigmoid(phi) (inside (0, 1)). Initialisation: a constant sky matching the photo's mean
+and rho = 0.5. ``render`` is ``mi.render`` with Mitsuba's ``prb`` integrator (path replay backpropagation; global
+illumination up to ``max_depth``), a perspective sensor equal to the target camera (centred principal point,
+square pixels: OpenCV axes turned to Mitsuba's by a half turn about z) and the envmap emitter's bitmap built from
+x exactly as the synthetic targets' (objcam.render.mitsuba_box_bitmap, columns reversed, Mitsuba's wrap
+columns); the gradient with respect to that bitmap (dr.grad) is pulled back to the texels by the transpose of
+this linear map. Stochastic gradients (``spp`` per pixel, a new seed each iteration); Adam (Kingma & Ba) with
+the given learning rate; it stops at ``max_iter``, at the time budget ``seconds`` (early stopping) or when the
+loss, smoothed over 20 iterations, improves by less than ``converge_tol`` relative over 20 iterations.
+Illumination groups across cameras are not stacked here (each target has its own envmap).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from objcam.errors import StageError
+
+
+@dataclass
+class AdamSettings:
+    lr: float = 0.05
+    seconds: float = 60.0
+    max_iter: int = 2000
+    spp: int = 4
+    ls: float = 0.1
+    lr_ridge: float = 1e-4
+    lp: float = 0.0
+    max_depth: int = 3
+    upsample: int = 2
+    converge_tol: float = 1e-3
+    seed: int = 0
+
+
+@dataclass
+class AdamTargetResult:
+    envmap: np.ndarray  # (H, 2H, 3)
+    prediction: np.ndarray  # (H', W', 3) pooled rho * A' x
+    albedo: np.ndarray | None  # (H', W', 3) or None (known albedo)
+    albedo_mask: np.ndarray | None
+    info: dict = field(default_factory=dict)
+
+
+def _bitmap_map(h: int, f: int) -> tuple[np.ndarray, np.ndarray]:
+    """The linear map env (H, 2H, C) -> Mitsuba's envmap ``data`` (f H + 1, 2 f H + 2, C): row weights Wrow
+    (f H + 1, H) and the texel column of every data column (2 f H + 2,)."""
+    from objcam.render import mitsuba_box_bitmap
+
+    w = 2 * h
+    probe = np.zeros((h, 1, h), np.float32)
+    probe[np.arange(h), 0, np.arange(h)] = 1.0  # channel k = one-hot texel row k
+    wrow = mitsuba_box_bitmap(probe, f)[:, 0, :].astype(np.float64)  # (f H + 1, H)
+    cols = (np.arange(w * f) // f)[::-1]  # objcam columns repeated f times, reversed for Mitsuba
+    cols = np.concatenate([cols[-1:], cols, cols[:1]])  # Mitsuba's wrap columns
+    return wrow, cols
+
+
+def _sensor(mi, camera, f: int):
+    c = camera
+    if abs(c.fx - c.fy) > 1e-6 * c.fx or abs(c.cx - (c.width - 1) / 2) > 1e-3 or abs(c.cy - (c.height - 1) / 2) > 1e-3:
+        raise StageError("method=adam needs a centred pinhole camera with square pixels (fx = fy, principal point "
+                         "at the image centre)", fix="use solve.method=exact for this camera")
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # OpenCV (x right, y down) -> Mitsuba (x left, y up), z forward
+    to_world = np.asarray(c.world_from_camera, dtype=np.float64) @ flip
+    fov = float(np.degrees(2 * np.arctan(c.width / (2 * c.fx))))
+    return {"type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mi.ScalarTransform4f(to_world.tolist()),
+            "film": {"type": "hdrfilm", "width": c.width // f * f, "height": c.height // f * f,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "sampler": {"type": "independent"}}
+
+
+def solve_adam_targets(scene, data: dict, settings: AdamSettings) -> dict[str, AdamTargetResult]:
+    """Run Adam for every target of a capture, one camera (transport group) at a time.
+
+    scene: objcam.schemas.artifacts.SceneArtifact; data: {target: (Transport, pooled, pooled_ok, y (M, 3), use (M,))}
+    as the solve stage loads them. Returns {target: AdamTargetResult}.
+    """
+    groups: dict[str, list[str]] = {}
+    for t in scene.targets:
+        groups.setdefault(str(data[t.name][0].folder), []).append(t.name)
+    out: dict[str, AdamTargetResult] = {}
+    for names in groups.values():
+        out.update(_solve_camera(scene, data, names, settings))
+    return out
+
+
+def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetResult]:
+    import drjit as dr
+
+    from objcam.envmap import EnvGrid
+    from objcam.scene import build_mitsuba_scene, use_mitsuba
+    from objcam.solvers.regularization import difference_operator
+
+    mi = use_mitsuba()
+    if not mi.variant().endswith("_ad_rgb"):
+        raise StageError(f"method=adam needs Mitsuba's llvm_ad_rgb variant (have {mi.variant()})",
+                         fix="run `make setup` (installs libllvm19)")
+    tr = data[names[0]][0]
+    grid = EnvGrid(tr.env_height)
+    f = tr.downsample
+    hp, wp = tr.image_shape
+    use = np.logical_and.reduce([data[t][4] for t in names])
+    rows = np.flatnonzero(use)
+    pix = tr.pixel_index[rows]
+    Y = np.stack([data[t][3][rows] for t in names])  # (L, M, 3)
+    L, m = Y.shape[0], rows.size
+    unknown = tr.unknown_albedo[rows]
+    rho_known = np.clip(tr.albedo[rows].astype(np.float64), 1e-3, 1.0)
+    Ap = tr.rho_free()[:, rows]
+    Ap = (Ap[0] if Ap.shape[0] == 1 else Ap.mean(axis=0)).astype(np.float64)  # (M, N) for init and prediction
+    rho0 = np.where(unknown[:, None], 0.5, rho_known)
+    # relative weights as the exact solve's: to mean(diag(A^T A)), A = diag(rho0) A'
+    s_data = float(np.mean((rho0**2).mean(axis=1) @ (Ap * Ap)))
+    D = difference_operator(grid, tr.texel_index)
+    DtD = (D.T @ D).tocsr()
+    ls, lrr = st.ls * s_data, st.lr_ridge * s_data
+    t_data = float(np.sum(Y * Y) / (m * 3))
+    G = None
+    if st.lp > 0 and unknown.any():
+        from objcam.solvers.joint import albedo_smoothness_operator
+
+        G = albedo_smoothness_operator(pix, tr.image_shape)
+    wrow, cols = _bitmap_map(grid.height, st.upsample)
+
+    desc = scene.description
+    sc = build_mitsuba_scene(desc, scene.folder, envmap=np.ones(grid.shape + (3,), np.float32), unknown_albedo=1.0,
+                             extra={"sensor": _sensor(mi, tr.camera, f),
+                                    "integrator": {"type": "prb", "max_depth": int(st.max_depth)}})
+    params = mi.traverse(sc)
+    key = next(k for k in params.keys() if k.endswith(".data") and "emitter" in k.lower()) if "emitter.data" \
+        not in params.keys() else "emitter.data"
+
+    n = tr.texel_index.size
+    x0 = float(np.mean(Y)) / max(float(np.mean(rho0 * (Ap @ np.ones(n))[:, None])), 1e-30)
+    theta = np.full((L, n, 3), np.log(max(x0, 1e-12)))
+    phi = np.log(rho0 / (1 - np.minimum(rho0, 1 - 1e-6)))
+    mom = [np.zeros_like(theta), np.zeros_like(phi)]
+    vel = [np.zeros_like(theta), np.zeros_like(phi)]
+    b1, b2, eps = 0.9, 0.999, 1e-8
+    t_start = time.perf_counter()
+    hist: list[float] = []
+    it = 0
+    stop = "max_iter"
+    while it < st.max_iter:
+        if time.perf_counter() - t_start > st.seconds:
+            stop = "time budget"
+            break
+        x = np.exp(theta)
+        rho = np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known)
+        g_theta = np.zeros_like(theta)
+        g_rho = np.zeros_like(rho)
+        loss = 0.0
+        for l in range(L):
+            env = np.zeros((grid.n_texels, 3))
+            env[tr.texel_index] = x[l]
+            env = env.reshape(grid.height, grid.width, 3)
+            bitmap = np.einsum("rh,hwc->rwc", wrow, env[:, cols])
+            tensor = mi.TensorXf(bitmap.astype(np.float32))
+            dr.enable_grad(tensor)
+            params[key] = tensor
+            params.update()
+            img = mi.render(sc, params, spp=st.spp, seed=st.seed + it * L + l)
+            im = np.asarray(img, dtype=np.float64)[: hp * f, : wp * f]
+            pooled = im.reshape(hp, f, wp, f, 3).mean(axis=(1, 3)).reshape(-1, 3)
+            s = pooled[pix]
+            r = rho * s - Y[l]
+            loss += float(np.sum(r * r))
+            g_rho += 2 * r * s
+            adj = np.zeros((hp * wp, 3))
+            adj[pix] = 2 * r * rho / (f * f)
+            adj = np.repeat(np.repeat(adj.reshape(hp, wp, 3), f, axis=0), f, axis=1)
+            dr.backward(dr.sum(img * mi.TensorXf(adj.astype(np.float32)), axis=None))
+            gb = np.asarray(dr.grad(tensor), dtype=np.float64)  # (f H + 1, 2 f H + 2, 3)
+            g_env = np.zeros((grid.height, grid.width, 3))
+            gcol = np.zeros((gb.shape[0], grid.width, 3))
+            np.add.at(gcol, (slice(None), cols), gb)
+            g_env = np.einsum("rh,rwc->hwc", wrow, gcol)
+            g_x = g_env.reshape(-1, 3)[tr.texel_index]
+            # the same envmap priors as the exact solve
+            g_x += 2 * ls * (DtD @ x[l]) + 2 * lrr * x[l]
+            loss += float(ls * np.sum(x[l] * (DtD @ x[l])) + lrr * np.sum(x[l] * x[l]))
+            g_theta[l] = g_x * x[l]
+        if G is not None:
+            gr = G @ rho
+            loss += st.lp * t_data * float(np.sum(gr * gr))
+            g_rho += 2 * st.lp * t_data * (G.T @ gr)
+        g_phi = np.where(unknown[:, None], g_rho * rho * (1 - rho), 0.0)
+        if not np.isfinite(loss):
+            raise StageError(f"method=adam diverged at iteration {it} (non-finite loss)",
+                             fix="lower solve.adam_lr")
+        hist.append(loss)
+        it += 1
+        for k, (p, g) in enumerate(((theta, g_theta), (phi, g_phi))):
+            mom[k] = b1 * mom[k] + (1 - b1) * g
+            vel[k] = b2 * vel[k] + (1 - b2) * g * g
+            p -= st.lr * (mom[k] / (1 - b1**it)) / (np.sqrt(vel[k] / (1 - b2**it)) + eps)
+        if it >= 40:
+            a, b = np.mean(hist[-40:-20]), np.mean(hist[-20:])
+            if a - b < st.converge_tol * a:
+                stop = "converged"
+                break
+    seconds = time.perf_counter() - t_start
+    x = np.exp(theta)
+    rho = np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known)
+    out = {}
+    for l, name in enumerate(names):
+        env = np.zeros((grid.n_texels, 3), np.float32)
+        env[tr.texel_index] = x[l]
+        pred = np.zeros((hp * wp, 3), np.float32)
+        fit = rho * (Ap @ x[l])
+        pred[pix] = fit
+        alb = alb_mask = None
+        if unknown.any():
+            alb = np.zeros((hp * wp, 3), np.float32)
+            alb[pix] = rho
+            alb_mask = np.zeros(hp * wp, bool)
+            alb_mask[pix[unknown]] = True
+            alb, alb_mask = alb.reshape(hp, wp, 3), alb_mask.reshape(hp, wp)
+        rel = float(np.linalg.norm(fit - Y[l]) / max(np.linalg.norm(Y[l]), 1e-30))
+        info = {"method": "adam", "albedo": "unknown" if unknown.any() else "known",
+                "scale_ambiguous": bool(unknown.any()), "texels": int(n), "pixels_used": int(m),
+                "solve_seconds": round(seconds, 3), "iterations": it, "stopped": stop,
+                "loss_history": [float(v) for v in hist], "kkt_residual_max": float("nan"),
+                "relative_image_residual": rel, "lr": st.lr, "spp": st.spp, "max_depth": st.max_depth,
+                "ls_relative": st.ls, "lr_relative": st.lr_ridge, "lp_relative": st.lp}
+        out[name] = AdamTargetResult(env.reshape(grid.height, grid.width, 3), pred.reshape(hp, wp, 3), alb,
+                                     alb_mask, info)
+    return out

@@ -1,0 +1,103 @@
+"""Edge-preserving smoothness: a Huber (smoothed total-variation) prior on the envmap's differences, minimised
+exactly by majorise-minimise (iteratively reweighted quadratic solves).
+
+Real environment maps are piecewise smooth: sky against tree line, a window against the wall. The quadratic
+prior ``ls ||D x||^2`` charges an edge by its squared height, so it blurs every edge the data cannot pin down.
+The Huber penalty grows linearly beyond a small threshold and keeps them. Measured on the bundled HDRIs
+(bench/results.md): tonemapped SSIM of forest 0.78 -> 0.86 and courtyard 0.58 -> 0.85 with an exact A and 0.1%
+noise; 0.55 -> 0.63 and 0.39 -> 0.59 on the 2048-spp path-traced targets.
+
+Objective, for X (N, C) (C colour channels sharing the edges; grey A_c = A for every c, or one A_c each):
+
+    F(X) = sum_c ||A_c x_c - y_c||^2 + lr sum_c ||x_c||^2 + ls * s * 2 C sum_e huber_eps(r_e),   X >= 0,
+    r_e = sqrt(mean_c (D x_c)_e^2),   huber_eps(r) = r^2 / (2 eps) (r <= eps), r - eps / 2 (r > eps).
+
+``s`` is the RMS edge height of the quadratic solution (fixed after the first solve, so F is one fixed function)
+and ``eps = eps_rel * s``. Near r = s the penalty equals the quadratic prior ``ls r^2`` of the same ``ls``, so
+the weights keep their meaning. Each step replaces huber by its quadratic majoriser at the current r, i.e. the
+quadratic prior with per-edge weights ``w_e = s / max(r_e, eps)`` (shared by the channels), and solves that
+bound-constrained quadratic exactly (:func:`objcam.solvers.nnls.solve_exact`, warm-started): F never increases.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from objcam.solvers.nnls import SolveResult, solve_exact
+from objcam.solvers.regularization import regularized_gram
+
+
+@dataclass
+class EdgeResult:
+    x: np.ndarray  # (N, C)
+    results: list[SolveResult]  # the last step's exact solve per Gram block
+    objective_history: list[float] = field(default_factory=list)  # F after each step (the first: quadratic solve)
+    steps: int = 0
+    edge_scale: float = 0.0  # s
+    kept_edges: float = 0.0  # fraction of edges above eps at the end (where the prior acts like TV)
+
+
+def huber(r: np.ndarray, eps: float) -> np.ndarray:
+    return np.where(r <= eps, r * r / (2 * eps), r - eps / 2)
+
+
+def edge_norms(D: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
+    """(E,) RMS over channels of the differences ``D x_c``."""
+    DX = D @ X
+    return np.sqrt(np.mean(DX * DX, axis=1))
+
+
+def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: Sequence[Sequence[int]],
+                yy: np.ndarray, D: sp.csr_matrix, ls_abs: float, lr_abs: float, steps: int = 6,
+                eps_rel: float = 0.05, tol: float = 1e-4,
+                solve: Callable[..., SolveResult] = solve_exact) -> EdgeResult:
+    """Minimise F (module docstring) over X >= 0.
+
+    grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
+    A_c^T y for the channels ``chans[b]`` it serves (a grey A: one block serving [0, 1, 2]).
+    yy: (C,) sum of y_c^2 per channel (for the objective's value only).
+    Stops after ``steps`` reweightings or when F decreases by less than ``tol`` relative.
+    """
+    n = D.shape[1]
+    n_ch = sum(len(c) for c in chans)
+    X = np.zeros((n, n_ch))
+    w = np.ones(D.shape[0])
+    results: list[SolveResult] = []
+    passive: list[np.ndarray | None] = [None] * len(grams)
+    history: list[float] = []
+    s = eps = 0.0
+
+    def objective(X: np.ndarray) -> float:
+        data = 0.0
+        for G, B, ch in zip(grams, rhs, chans):
+            Xc = X[:, list(ch)]
+            data += float(np.sum(Xc * (G @ Xc)) - 2 * np.sum(B * Xc))
+        prior = ls_abs * s * 2 * n_ch * float(huber(edge_norms(D, X), eps).sum()) if eps > 0 else 0.0
+        return data + float(yy.sum()) + lr_abs * float(np.sum(X * X)) + prior
+
+    for step in range(steps + 1):
+        Dw = sp.diags(np.sqrt(w)) @ D
+        results = []
+        for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
+            Q = regularized_gram(G, Dw, ls_abs, lr_abs)
+            res = solve(Q, B, passive0=passive[b]) if solve is solve_exact else solve(Q, B)
+            X[:, list(ch)] = res.x.reshape(n, -1)
+            passive[b] = res.x.reshape(n, -1) > 0
+            results.append(res)
+        r = edge_norms(D, X)
+        if step == 0:
+            s = float(np.sqrt(np.mean(r * r)))
+            if s <= 0:  # a flat solution: nothing to reweight
+                history.append(objective(X))
+                break
+            eps = eps_rel * s
+        history.append(objective(X))
+        if step > 1 and history[-2] - history[-1] <= tol * abs(history[-2]):
+            break
+        w = s / np.maximum(r, eps)
+    kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
+    return EdgeResult(X, results, history, len(history) - 1, s, kept)
