@@ -7,10 +7,11 @@ STAMP  := $(VENV)/.objcam-setup
 CAPTURE ?= demo/capture
 ARGS   ?=
 DEMO_SYNTH_ARGS ?= --object bunny --envmap forest
+DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest
 
-STAGES := scene transport solve evaluate analysis report
+STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo test bench status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -24,11 +25,28 @@ demo: $(STAMP)
 	@echo "outputs: demo/capture/objcam/solve/t0/ (envmap.exr, prediction.exr, residual.exr, *.png)"
 	@echo "         demo/capture/objcam/evaluate/ (metrics.json, t0/overview.png: target | truth | recovered)"
 
+# the bundled demo object as a synthetic photographed capture (raw DNG views, brackets, chrome ball), run from the
+# raws: ingest -> sfm -> geometry -> texture -> probe -> scene -> ... (a few minutes; `make demo` stays fast)
+demo-full: $(STAMP)
+	@[ -f demo/full/capture.toml ] || $(OBJCAM) synth demo/full --full $(DEMO_FULL_SYNTH_ARGS)
+	$(OBJCAM) run demo/full $(ARGS)
+	$(OBJCAM) evaluate demo/full --quiet
+	@echo "photos:  demo/full/views/*.dng, demo/full/targets/t0/*.dng, demo/full/probes/t0/*.dng (truth in demo/full/truth/)"
+	@echo "ingest:  demo/full/objcam/ingest/ (views/*.png|exr, targets/t0/image.exr, valid.png, merge.json)"
+	@echo "sfm:     demo/full/objcam/sfm/ (report.json, cameras/, sparse/0 + images/: open in COLMAP)"
+	@echo "report:  demo/full/objcam/report/index.html"
+
 test: $(STAMP)
 	$(BIN)/python -m pytest -q $(ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
+
+# occluder design: bunny, sphere and coded mask (plus any --mesh FILE in ARGS) compared on one setup
+DESIGN_OUT ?= demo/design
+design: $(STAMP)
+	$(OBJCAM) design $(DESIGN_OUT) $(ARGS)
+	@echo "design:  $(DESIGN_OUT)/index.html (figure and table), design.json, comparison.png"
 
 run: $(STAMP)
 	$(OBJCAM) run $(CAPTURE) $(ARGS)

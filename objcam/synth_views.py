@@ -10,10 +10,11 @@ images and views agree.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import tempfile
 from pathlib import Path
-from typing import Literal
+from typing import Iterator, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -90,6 +91,37 @@ def _seed(seed: int, index: int) -> int:
     return (seed * 1_000_003 + index * 104_729 + 31) % (2**31)
 
 
+@contextlib.contextmanager
+def board_scene(verts: np.ndarray, faces: np.ndarray, object_albedo, board: BoardSpec, env: np.ndarray,
+                texture_px_per_m: float = 4000.0, plane_size: float = 20.0, envmap_upsample: int = 2,
+                extra: dict | None = None) -> Iterator:
+    """The Mitsuba scene of a full capture: the object (``verts`` (V, 3) world metres, ``faces`` (F, 3)) with a
+    constant albedo (scalar or RGB) standing on the printed ``board`` (``board_texture`` on
+    ``make_plane(plane_size, extent)``: paper beyond the board) under ``env`` ((H, 2H, 3) objcam lat-long radiance,
+    emitted as box texels, ``mitsuba_box_bitmap(env, envmap_upsample)``). ``extra``: more scene-dict entries (an
+    ``"object"`` entry replaces the object, e.g. by a chrome ball). A context manager: the scene's files live in a
+    temporary folder while it is in use."""
+    from objcam.render import mitsuba_box_bitmap
+    from objcam.scene import AlbedoValue, MeshData, SceneDescription, build_mitsuba_scene, make_plane
+    from objcam.sfm.board import board_texture
+    from objcam.image_io import write_exr
+
+    tex = board_texture(board, texture_px_per_m)
+    if tex.extent > plane_size:
+        raise InputError("the board is larger than the support plane", None, "raise plane_size")
+    rgb = (object_albedo,) * 3 if isinstance(object_albedo, (int, float)) else tuple(object_albedo)
+    with tempfile.TemporaryDirectory(prefix="objcam-board-scene-") as tmp:
+        root = Path(tmp)
+        MeshData(np.asarray(verts, np.float32), np.asarray(faces, np.uint32)).save(root / "object.npz")
+        make_plane(plane_size, tex.extent).save(root / "support.npz")
+        write_exr(root / "albedo_support.exr", np.repeat(tex.image[..., None], 3, axis=2))
+        desc = SceneDescription(object_mesh="object.npz", support_mesh="support.npz", support_is_plane=True,
+                                albedo_object=AlbedoValue(rgb=tuple(float(x) for x in rgb)),
+                                albedo_support=AlbedoValue(texture="albedo_support.exr"))
+        yield build_mitsuba_scene(desc, root, envmap=mitsuba_box_bitmap(np.asarray(env, np.float32),
+                                                                        envmap_upsample), extra=extra)
+
+
 def render_views(out_dir: str | Path, params: ViewRingParams | None = None,
                  camera_dir: str | Path | None = None) -> list[tuple[Path, Camera]]:
     """Render the ring of views into ``out_dir`` (``view_000.png`` ...) and write each true camera as
@@ -102,11 +134,9 @@ def render_views(out_dir: str | Path, params: ViewRingParams | None = None,
     import cv2
 
     from objcam.envmap import rotate_z
-    from objcam.image_io import atomic_write_bytes, write_exr
+    from objcam.image_io import atomic_write_bytes
     from objcam.progress import bar
-    from objcam.render import mitsuba_box_bitmap, render_image
-    from objcam.scene import AlbedoValue, MeshData, SceneDescription, build_mitsuba_scene, make_plane
-    from objcam.sfm.board import board_texture
+    from objcam.render import render_image
     from objcam.synth import apply_noise, auto_exposure, load_envmap, object_mesh
 
     params = params or ViewRingParams()
@@ -117,24 +147,13 @@ def render_views(out_dir: str | Path, params: ViewRingParams | None = None,
     names = view_names(params)
     cams = ring_cameras(params)
     verts, faces = object_mesh(params.object, params.object_height)
-    tex = board_texture(params.board, params.texture_px_per_m)
-    if tex.extent > params.plane_size:
-        raise InputError("the board is larger than the support plane", None, "raise plane_size")
     env = load_envmap(params.envmap, params.envmap_height).astype(np.float64)
     env = rotate_z(env, params.rotation_deg).astype(np.float32)
-    rgb = (params.object_albedo,) * 3 if isinstance(params.object_albedo, (int, float)) else params.object_albedo
 
     results: list[tuple[Path, Camera]] = []
     ref = None
-    with tempfile.TemporaryDirectory(prefix="objcam-views-") as tmp:
-        root = Path(tmp)
-        MeshData(verts, faces).save(root / "object.npz")
-        make_plane(params.plane_size, tex.extent).save(root / "support.npz")
-        write_exr(root / "albedo_support.exr", np.repeat(tex.image[..., None], 3, axis=2))
-        desc = SceneDescription(object_mesh="object.npz", support_mesh="support.npz", support_is_plane=True,
-                                albedo_object=AlbedoValue(rgb=tuple(float(x) for x in rgb)),
-                                albedo_support=AlbedoValue(texture="albedo_support.exr"))
-        scene = build_mitsuba_scene(desc, root, envmap=mitsuba_box_bitmap(env, params.envmap_upsample))
+    with board_scene(verts, faces, params.object_albedo, params.board, env, params.texture_px_per_m,
+                     params.plane_size, params.envmap_upsample) as scene:
         for i, (name, cam) in enumerate(zip(names, bar(cams, desc="views", unit="view"))):
             img = render_image(scene, cam, params.spp, params.max_depth, seed=_seed(params.seed, i))
             if params.shot_noise > 0:

@@ -5,6 +5,8 @@
 - :mod:`objcam.capture.exif`: exposure time, ISO, f-number, camera from EXIF (exifread, OpenImageIO fallback).
 - :mod:`objcam.capture.hdr`: exposure-bracket merges (raw-linear, and JPEG via a Debevec response).
 - :mod:`objcam.capture.dng`: synthetic Bayer DNGs (PiDNG) with camera-like metadata and a sensor noise model.
+- :mod:`objcam.capture.photos`: a capture's folders -> per-second linear images (list, decode, merge a folder's
+  bracket, resize, undistort), what the ``ingest`` stage runs.
 """
 
 from objcam.capture.exif import ExposureInfo, exposure_time, read_exif

@@ -89,10 +89,11 @@ def write_dng(path: str | Path, signal: np.ndarray, *, exposure_time: float, iso
               f_number: float = 8.0, make: str = "objcam", model: str = "synthetic",
               black_level: int = 512, white_level: int = 16383,
               wb: Sequence[float] = (2.0, 1.0, 1.5), noise: NoiseModel | None = None,
-              cfa: str = "RGGB") -> Path:
+              cfa: str = "RGGB", focal_length_mm: float | None = None) -> Path:
     """Write ``signal`` (H, W, 3 linear camera RGB, white-level units: 0 = black, 1 = saturation) as a 16-bit CFA
     DNG, atomically. ``wb``: the as-shot white-balance multipliers (R, G, B), stored as AsShotNeutral = 1 / wb
-    (rawpy's ``camera_whitebalance`` then returns ``wb``). Returns the path."""
+    (rawpy's ``camera_whitebalance`` then returns ``wb``). ``focal_length_mm``: optional EXIF FocalLength (the zoom
+    setting). Returns the path."""
     from pidng.core import RAW2DNG
     from pidng.defs import CalibrationIlluminant, Orientation, PhotometricInterpretation
     from pidng.dng import DNGTags, Tag, dngIFD, dngTag
@@ -139,6 +140,8 @@ def write_dng(path: str | Path, signal: np.ndarray, *, exposure_time: float, iso
                   dngTag(Tag.FNumber, [_rational(f_number, 1000)]),
                   dngTag(Tag.PhotographicSensitivity, [int(round(iso))]),
                   dngTag(Tag.ExifVersion, list(b"0231"))]
+    if focal_length_mm is not None:
+        exif.tags.append(dngTag(Tag.FocalLength, [_rational(focal_length_mm, 1000)]))
     t.__tags__[Tag.EXIF_IFD] = _sub_ifd_tag_class()(Tag.EXIF_IFD, [exif])
 
     conv = RAW2DNG()

@@ -8,6 +8,7 @@ Read with exifread (``process_file(details=False)``: no maker notes), from the E
 - f-number: ``FNumber`` (0x829D), else APEX ``ApertureValue`` (0x9202, N = 2^(Av/2))
 - ISO: ``ISOSpeedRatings`` (0x8827, a.k.a. PhotographicSensitivity), else ``RecommendedExposureIndex`` (0x8832)
 - camera: ``Image Make`` (0x010F), ``Image Model`` (0x0110)
+- focal length: ``FocalLength`` (0x920A), millimetres (tells zoom settings apart)
 
 When exifread finds no exposure time (a format it does not parse, e.g. some CR3/RAF), OpenImageIO's reader
 (LibRaw for raws) is asked for ``ExposureTime``, ``FNumber``, ``Exif:ISOSpeedRatings``, ``Make``, ``Model``.
@@ -36,6 +37,7 @@ class ExposureInfo:
     make: str | None
     model: str | None
     source: str  # "exifread", "oiio", or "none"
+    focal_length: float | None = None  # millimetres
 
     @property
     def camera(self) -> str:
@@ -94,9 +96,11 @@ def _from_exifread(path: Path) -> ExposureInfo | None:
         av = _num(_first(tags, "ApertureValue"))
         n = 2.0 ** (av / 2.0) if av is not None else None
     iso = _num(_first(tags, "ISOSpeedRatings", "PhotographicSensitivity", "RecommendedExposureIndex"))
+    f = _num(_first(tags, "FocalLength"))
     return ExposureInfo(exposure_time=t if t and t > 0 else None, iso=iso if iso and iso > 0 else None,
                         f_number=n if n and n > 0 else None, make=_str(tags.get("Image Make")),
-                        model=_str(tags.get("Image Model")), source="exifread")
+                        model=_str(tags.get("Image Model")), source="exifread",
+                        focal_length=f if f and f > 0 else None)
 
 
 def _from_oiio(path: Path) -> ExposureInfo | None:
@@ -124,6 +128,7 @@ def _from_oiio(path: Path) -> ExposureInfo | None:
         t, n, iso = get("ExposureTime", "Exif:ExposureTime"), get("FNumber", "Exif:FNumber"), \
             get("Exif:ISOSpeedRatings", "Exif:PhotographicSensitivity")
         make, model = get("Make"), get("Model")
+        focal = get("FocalLength", "Exif:FocalLength")
     finally:
         inp.close()
 
@@ -135,7 +140,8 @@ def _from_oiio(path: Path) -> ExposureInfo | None:
         return x if math.isfinite(x) and x > 0 else None
 
     return ExposureInfo(exposure_time=pos(t), iso=pos(iso), f_number=pos(n), make=(str(make).strip() or None)
-                        if make else None, model=(str(model).strip() or None) if model else None, source="oiio")
+                        if make else None, model=(str(model).strip() or None) if model else None, source="oiio",
+                        focal_length=pos(focal))
 
 
 def read_exif(path: str | Path) -> ExposureInfo:

@@ -107,6 +107,9 @@ class CameraFacts(BaseModel):
     exposure_times: dict[str, float] = Field(default_factory=dict, description="exposure time override, seconds, "
                                              "by file name, for files without EXIF")
     distortion: list[float] | None = Field(None, description="OpenCV distortion k1 k2 p1 p2 [k3], if known")
+    focal_px: float | None = Field(None, gt=0, description="focal length in pixels of the decoded photo (after "
+                                   "demosaicing), principal point at the centre: the K the distortion was "
+                                   "calibrated with (needed with distortion)")
 
 
 class ViewsSpec(BaseModel):

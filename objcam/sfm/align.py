@@ -492,3 +492,73 @@ def pnp_check(cameras: Mapping[str, Camera], obs: BoardObservations, spec: Board
         out[name] = {"centre_mm": d * 1000, "rotation_deg": a, "n_corners": r.n_corners, "rms_px": r.rms_px,
                      "camera": r.camera}
     return out
+
+
+# ------------------------------------------------------------------------------------ no board: plane + height
+
+
+def plane_height_frame(points: np.ndarray, centres: np.ndarray, axes: np.ndarray, object_height: float,
+                       iterations: int = 400, seed: int = 0) -> tuple[Similarity, dict]:
+    """The similarity SfM -> world without a board, from the sparse points (P, 3), the camera centres (C, 3) and
+    unit optical axes (C, 3) of the views, all in the SfM frame, and the object's known height (metres):
+
+    1. support plane: RANSAC over point triples (inlier band 0.3% of the median camera distance), least squares
+       on the inliers; its normal points towards the cameras (world +z);
+    2. origin: the point where the optical axes pass closest (least squares), dropped onto the plane;
+    3. world +x: from the origin towards the first camera, in the plane;
+    4. scale: the 98th percentile of the heights above the plane of the points within a third of the median
+       horizontal camera distance of the origin (the object) becomes ``object_height``.
+
+    Returns (similarity, diagnostics). Raises ValueError (with the reason) when the plane or the object cannot
+    be found."""
+    pts = np.asarray(points, float)
+    C = np.asarray(centres, float)
+    A = np.asarray(axes, float)
+    if len(pts) < 20 or len(C) < 3:
+        raise ValueError(f"too few points ({len(pts)}) or views ({len(C)}) to find the support plane")
+    # the look-at point: minimise the distance to every optical axis
+    M = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, a in zip(C, A):
+        P = np.eye(3) - np.outer(a, a)
+        M += P
+        b += P @ c
+    look = np.linalg.solve(M, b)
+    dist = float(np.median(np.linalg.norm(C - look, axis=1)))
+    thr = 0.003 * dist
+    rng = np.random.default_rng(seed)
+    best, best_n = None, -1
+    for _ in range(iterations):
+        tri = pts[rng.choice(len(pts), 3, replace=False)]
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        if np.linalg.norm(n) < 1e-12:
+            continue
+        n /= np.linalg.norm(n)
+        inl = np.abs((pts - tri[0]) @ n) < thr
+        if inl.sum() > best_n:
+            best, best_n = inl, int(inl.sum())
+    if best is None or best_n < 10:
+        raise ValueError("no support plane in the sparse points")
+    q = pts[best]
+    mu = q.mean(axis=0)
+    n = np.linalg.svd(q - mu)[2][-1]
+    if np.mean((C - mu) @ n) < 0:
+        n = -n
+    o = look - ((look - mu) @ n) * n
+    h = (pts - o) @ n
+    horiz = (pts - o) - np.outer(h, n)
+    r = np.linalg.norm(horiz, axis=1)
+    cam_r = float(np.median(np.linalg.norm((C - o) - np.outer((C - o) @ n, n), axis=1)))
+    obj = (r < cam_r / 3) & (h > 3 * thr)
+    if obj.sum() < 10:
+        raise ValueError(f"only {int(obj.sum())} sparse points on the object above the plane")
+    height = float(np.percentile(h[obj], 98))
+    x = (C[0] - o) - ((C[0] - o) @ n) * n
+    x /= np.linalg.norm(x)
+    y = np.cross(n, x)
+    R = np.stack([x, y, n])  # rows: world axes in SfM coordinates
+    s = object_height / height
+    sim = Similarity(s, R, -s * R @ o)
+    resid = (q - mu) @ n
+    return sim, {"plane_inliers": best_n, "plane_rms_mm": float(np.sqrt(np.mean(resid**2)) * s * 1000),
+                 "object_points": int(obj.sum()), "object_height_sfm": height, "scale_m_per_unit": s}

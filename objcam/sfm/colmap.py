@@ -48,6 +48,7 @@ class SfmOptions(BaseModel):
     init_min_num_inliers: int = Field(50, ge=15, description="inlier matches an initial pair needs (COLMAP: 100)")
     init_min_tri_angle: float = Field(8.0, gt=0, description="triangulation angle of the initial pair, degrees "
                                       "(COLMAP: 16)")
+    quiet_log: bool = Field(True, description="hide COLMAP's INFO log lines (warnings and errors still print)")
 
 
 class SfmResult(BaseModel):
@@ -105,9 +106,11 @@ def _hdr_to_png(src: Path, dst: Path) -> None:
     atomic_write_bytes(dst, buf.tobytes())
 
 
-def prepare_images(image_dir: str | Path, groups: Mapping[str, Sequence[str | Path]]) -> dict[str, list[str]]:
-    """Gather images for SfM under ``image_dir/<group>/``: 8/16-bit PNG, JPEG and TIFF files are linked (or
-    copied), linear HDR (EXR) targets are tonemapped to 8-bit PNG. Returns {group: [name relative to image_dir]}.
+def prepare_images(image_dir: str | Path, groups: Mapping[str, Sequence[str | Path]],
+                   copy: bool = False) -> dict[str, list[str]]:
+    """Gather images for SfM under ``image_dir/<group>/``: 8/16-bit PNG, JPEG and TIFF files are linked (or, with
+    ``copy`` or where links fail, copied: a folder that is moved afterwards keeps working), linear HDR (EXR)
+    targets are tonemapped to 8-bit PNG. Returns {group: [name relative to image_dir]}.
 
     groups: {group name (a folder name, e.g. "views", "targets"): image paths}; file stems must be unique per group.
     """
@@ -133,6 +136,8 @@ def prepare_images(image_dir: str | Path, groups: Mapping[str, Sequence[str | Pa
                 if dst.exists() or dst.is_symlink():
                     dst.unlink()
                 try:
+                    if copy:
+                        raise OSError("copy requested")
                     dst.symlink_to(p.resolve())
                 except OSError:
                     shutil.copy2(p, dst)
@@ -147,7 +152,8 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
             intrinsics: Mapping[str, Camera] | None = None, options: SfmOptions | None = None,
             error_path: str | Path | None = None,
             initial_intrinsics: Mapping[str, tuple[Camera, list[float]]] | None = None,
-            seed_poses: Mapping[str, Camera] | None = None) -> SfmResult:
+            seed_poses: Mapping[str, Camera] | None = None,
+            camera_of: Mapping[str, str] | None = None) -> SfmResult:
     """SfM over the images ``groups`` ({group: [names relative to image_dir]}, e.g. from :func:`prepare_images`).
 
     intrinsics: optional {group: Camera} whose fx, fy, cx, cy are known (held fixed, PINHOLE).
@@ -159,6 +165,9 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
     from these poses (``pycolmap.triangulate_points``) and the incremental mapper registers the other images and
     bundle-adjusts everything (robust where SIFT alone finds too few matches for an initial pair: small, noisy
     or nearly planar scenes). The model is then already in the world frame, up to the mapper's adjustments.
+    camera_of: optional {group: camera group}: groups mapped to the same camera group share one COLMAP camera
+    (one camera body and zoom setting; their images must have one size); ``intrinsics`` and
+    ``initial_intrinsics`` are looked up by camera group. Default: every group its own camera.
     Writes ``work_dir/database.db`` and ``work_dir/sparse_sfm/0`` (binary). Raises InputError when there are too
     few images or too few register (naming the images that did not, and ``error_path``, default ``image_dir``).
     """
@@ -181,6 +190,8 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
         shutil.rmtree(sparse)
     sparse.mkdir(parents=True)
     pycolmap.set_random_seed(options.seed)
+    if options.quiet_log:  # COLMAP's INFO lines (thousands) would drown the stage's own output
+        pycolmap.logging.minloglevel = 1
     seconds: dict[str, float] = {}
 
     t = time.perf_counter()
@@ -188,7 +199,7 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
     ext.num_threads = options.num_threads
     ext.max_image_size = options.max_image_size
     ext.sift.max_num_features = options.max_num_features
-    for group, names in groups.items():
+    for group, names in camera_groups(groups, camera_of).items():
         if not names:
             continue
         known = intrinsics.get(group)
@@ -226,7 +237,7 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
     mo.mapper.init_min_num_inliers = options.init_min_num_inliers
     mo.mapper.abs_pose_min_num_inliers = min(mo.mapper.abs_pose_min_num_inliers, options.init_min_num_inliers)
     mo.mapper.init_min_tri_angle = options.init_min_tri_angle
-    fixed_ids = _fixed_camera_ids(db, groups, intrinsics)
+    fixed_ids = _fixed_camera_ids(db, camera_groups(groups, camera_of), intrinsics)
     if fixed_ids:
         mo.constant_cameras = set(fixed_ids)
     if not options.refine_intrinsics:
@@ -272,6 +283,14 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
                          "add views with more overlap (neighbouring views 10-20 degrees apart), keep the board "
                          "and the object in every view, avoid blur")
     return result
+
+
+def camera_groups(groups: Mapping[str, Sequence[str]], camera_of: Mapping[str, str] | None) -> dict[str, list[str]]:
+    """{camera group: image names} from {group: image names} and {group: camera group} (default: itself)."""
+    out: dict[str, list[str]] = {}
+    for group, names in groups.items():
+        out.setdefault((camera_of or {}).get(group, group), []).extend(names)
+    return out
 
 
 def _seed_model(db: Path, poses: Mapping[str, Camera]):

@@ -5,11 +5,13 @@ model in the world frame from the board (``objcam.sfm.align``), refines it with 
 (``objcam.sfm.bundle``), checks every target against a board-only PnP pose, grades the run
 (``objcam.sfm.report``) and writes, under ``work_dir``::
 
-    images/views/*, images/targets/*.png   the images SfM saw (links; HDR targets tonemapped)
+    images/views/*, images/targets/*.png,  the images SfM saw (links, or copies with ``copy_images``; HDR
+    images/probes/*.png                    targets tonemapped)
     database.db, sparse_sfm/0/             COLMAP database and raw model (arbitrary frame)
     sparse/0/                              the final model: world frame, metres (COLMAP binary)
     cameras/views/<stem>.json              objcam Camera JSON (OpenCV convention)
     cameras/targets/<name>.json
+    cameras/probes/<name>.json             chrome-ball photos, posed like the targets
     report.json                            metrics, timings and the graded checks
 """
 
@@ -20,12 +22,13 @@ import time
 from pathlib import Path
 from typing import Literal, Mapping, Sequence
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from objcam.camera import Camera
 from objcam.errors import InputError
 from objcam.sfm.board import BoardSpec
-from objcam.sfm.colmap import SfmOptions, SfmResult, prepare_images, run_sfm
+from objcam.sfm.colmap import SfmOptions, SfmResult, camera_groups, prepare_images, run_sfm
 from objcam.sfm.report import Check, format_checks, grade_checks, worst
 
 
@@ -45,12 +48,15 @@ class FrontendOptions(BaseModel):
                                "final bundle adjustment")
     target_pose: Literal["bundle", "pnp"] = Field("bundle", description="target poses from the final model, or "
                                                   "from a board-only PnP with the model's intrinsics")
+    copy_images: bool = Field(False, description="copy the images into work_dir/images (a self-contained COLMAP "
+                              "project that survives moving the folder) instead of linking them")
 
 
 class FrontendResult(BaseModel):
     model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
     views: dict[str, Camera]  # by file stem, registered views only
     targets: dict[str, Camera]
+    probes: dict[str, Camera] = {}
     sfm: SfmResult
     calibration: dict[str, dict]
     colmap_cameras: dict[str, dict]  # per group: final COLMAP model, params and distortion (the Camera JSONs hold
@@ -58,6 +64,7 @@ class FrontendResult(BaseModel):
     alignment: dict
     bundle: dict | None
     target_pnp: dict[str, dict]
+    probe_pnp: dict[str, dict] = {}
     checks: list[Check]
     seconds: dict[str, float]
 
@@ -76,11 +83,18 @@ def _folder_of(paths: Sequence[Path]) -> Path:
 
 def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets: Mapping[str, str | Path] | None = None,
                      options: FrontendOptions | None = None,
-                     intrinsics: Mapping[str, Camera] | None = None) -> FrontendResult:
-    """World-frame cameras of ``views`` (image paths) and ``targets`` ({name: image path}; EXR is tonemapped).
+                     intrinsics: Mapping[str, Camera] | None = None,
+                     probes: Mapping[str, str | Path] | None = None,
+                     camera_of: Mapping[str, str] | None = None,
+                     error_path: str | Path | None = None) -> FrontendResult:
+    """World-frame cameras of ``views`` (image paths), ``targets`` and ``probes`` ({name: image path}; EXR is
+    tonemapped).
 
-    intrinsics: optional known intrinsics per group ("views", "targets"): a Camera whose fx, fy, cx, cy are used
-    (held fixed); otherwise SfM estimates them (one camera per group).
+    intrinsics: optional known intrinsics per camera group ("views", "targets", "probes"): a Camera whose fx, fy,
+    cx, cy are used (held fixed); otherwise SfM estimates them (one camera per camera group).
+    camera_of: optional {group: camera group}, e.g. {"targets": "views", "probes": "views"} when one camera body
+    and zoom took every photo (one COLMAP camera, images of one size); default: a camera per group.
+    error_path: the folder errors name (default: the views' folder), e.g. the capture's photo folder.
     Raises InputError for too few views, SfM registering too few images, or the board not found.
     """
     from objcam.sfm.align import (Calibration, align_to_board, apply_alignment, calibrate_intrinsics,
@@ -92,7 +106,13 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
     work = Path(work_dir)
     views = [Path(v) for v in views]
     targets = {k: Path(v) for k, v in (targets or {}).items()}
-    folder = _folder_of(views) if views else work
+    probes = {k: Path(v) for k, v in (probes or {}).items()}
+    camera_of = dict(camera_of or {})
+
+    def cam_key(group: str) -> str:
+        return camera_of.get(group, group)
+
+    folder = Path(error_path) if error_path is not None else (_folder_of(views) if views else work)
     if len(views) < options.min_views:
         raise InputError(f"only {len(views)} view(s) for structure from motion", folder,
                          f"take at least {options.min_views} (better 20 or more) overlapping photos around the "
@@ -104,9 +124,12 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
     groups_in: dict[str, list[Path]] = {"views": views}
     if targets:
         groups_in["targets"] = [targets[k] for k in targets]
-    groups = prepare_images(image_dir, groups_in)
+    if probes:
+        groups_in["probes"] = [probes[k] for k in probes]
+    groups = prepare_images(image_dir, groups_in, copy=options.copy_images)
     if targets:
         target_files = dict(zip(targets, groups["targets"]))  # name -> "targets/<stem>.png"
+    probe_files = dict(zip(probes, groups["probes"])) if probes else {}
     view_files = dict(zip((v.stem for v in views), groups["views"]))
     seconds["prepare"] = time.perf_counter() - t0
 
@@ -123,10 +146,14 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
                          "its printed ring in frame and in focus; check the board settings match the print")
     calib: dict[str, Calibration] = {}
     initial = {}
-    for group, names in groups.items():
+    for group, names in camera_groups(groups, camera_of).items():
         if intrinsics and group in intrinsics:
             continue
         size = _image_size(image_dir / names[0])
+        for n in names[1:]:
+            if _image_size(image_dir / n) != size:
+                raise InputError(f"images sharing camera {group!r} differ in size ({names[0]}: {size}, {n}: "
+                                 f"{_image_size(image_dir / n)})", folder, "give each image size its own camera")
         c = calibrate_intrinsics(all_obs, names, options.board, size[0], size[1],
                                  radial=options.sfm.camera_model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV"))
         if c is not None:
@@ -135,8 +162,9 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
     seed: dict[str, Camera] = {}
     if options.seed_from_board:  # board PnP poses (world frame) to start SfM from
         for group, names in groups.items():
-            k = intrinsics[group] if intrinsics and group in intrinsics else (
-                calib[group].camera if group in calib else None)
+            key = cam_key(group)
+            k = intrinsics[key] if intrinsics and key in intrinsics else (
+                calib[key].camera if key in calib else None)
             if k is None:
                 continue
             for n in names:
@@ -152,7 +180,7 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
     if options.fix_board_intrinsics_in_sfm:
         fixed.update({g: c for g, (c, dist) in initial.items() if not any(dist)})
     sfm = run_sfm(work, image_dir, groups, intrinsics=fixed, options=options.sfm, error_path=folder,
-                  initial_intrinsics=initial, seed_poses=seed)
+                  initial_intrinsics=initial, seed_poses=seed, camera_of=camera_of)
     seconds.update({f"sfm_{k}": v for k, v in sfm.seconds.items()})
     rec = sfm.load()
 
@@ -168,7 +196,7 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
         const = set()
         if intrinsics:  # the user's known intrinsics stay fixed
             for img in rec.images.values():
-                if img.name.split("/")[0] in intrinsics:
+                if cam_key(img.name.split("/")[0]) in intrinsics:
                     const.add(img.camera_id)
         br = bundle_adjust_with_board(rec, obs.detections, options.board, refine_focal=options.refine_focal,
                                       constant_camera_ids=const, sfm_weight=options.sfm_weight)
@@ -195,7 +223,17 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
             target_pnp[name] = {k: v for k, v in r.items() if k != "camera"}
             if options.target_pose == "pnp":
                 out_targets[name] = r["camera"]
-    for sub, cs in (("views", out_views), ("targets", out_targets)):
+    out_probes: dict[str, Camera] = {}
+    probe_pnp: dict[str, dict] = {}
+    for name, f in probe_files.items():
+        if f not in cams:
+            continue
+        out_probes[name] = cams[f]
+        if f in pnp:
+            probe_pnp[name] = {k: v for k, v in pnp[f].items() if k != "camera"}
+            if options.target_pose == "pnp":
+                out_probes[name] = pnp[f]["camera"]
+    for sub, cs in (("views", out_views), ("targets", out_targets), ("probes", out_probes)):
         for name, cam in cs.items():
             cam.save(_mk(work / "cameras" / sub) / f"{name}.json")
 
@@ -207,21 +245,24 @@ def estimate_cameras(work_dir: str | Path, views: Sequence[str | Path], targets:
         views_with_board=sum(1 for n, (ids, _) in obs.detections.items() if n in view_names and len(ids) >= 4),
         board_corner_rms_mm=al.corner_rms_mm, board_plane_rms_mm=al.plane_rms_mm,
         board_reprojection_px=bundle["board_rms_px_after"] if bundle else al.reprojection_rms_px,
-        target_pnp=target_pnp, board_square_mm=options.board.square_length * 1000)
+        target_pnp=target_pnp, board_square_mm=options.board.square_length * 1000,
+        probes=list(probes), probes_registered=list(out_probes), probe_pnp=probe_pnp)
     seconds["total"] = time.perf_counter() - t0
     seconds = {k: round(v, 2) for k, v in seconds.items()}
     calibration = {g: {"fx": c.camera.fx, "fy": c.camera.fy, "distortion": c.distortion, "rms_px": c.rms_px,
                        "n_views": c.n_views, "n_corners": c.n_corners} for g, c in calib.items()}
-    result = FrontendResult(views=out_views, targets=out_targets, sfm=sfm, calibration=calibration,
+    result = FrontendResult(views=out_views, targets=out_targets, probes=out_probes, sfm=sfm,
+                            calibration=calibration,
                             colmap_cameras=colmap_cameras,
                             alignment=al.metrics(), bundle=bundle,
-                            target_pnp=target_pnp, checks=checks, seconds=seconds)
+                            target_pnp=target_pnp, probe_pnp=probe_pnp, checks=checks, seconds=seconds)
     from objcam.image_io import atomic_write_text
 
     atomic_write_text(work / "report.json", json.dumps(
         {"grade": result.grade, "checks": [c.model_dump() for c in checks], "sfm": sfm.model_dump(),
          "calibration": calibration, "colmap_cameras": colmap_cameras, "alignment": al.metrics(),
-         "bundle": bundle, "target_pnp": target_pnp, "seconds": seconds, "options": options.model_dump(mode="json")},
+         "bundle": bundle, "target_pnp": target_pnp, "probe_pnp": probe_pnp, "seconds": seconds,
+         "options": options.model_dump(mode="json")},
         indent=2))
     return result
 
@@ -239,3 +280,89 @@ def _image_size(path: Path) -> tuple[int, int]:
 def _mk(p: Path) -> Path:
     p.mkdir(parents=True, exist_ok=True)
     return p
+
+
+def estimate_cameras_without_board(work_dir: str | Path, views: Sequence[str | Path], object_height: float,
+                                   targets: Mapping[str, str | Path] | None = None,
+                                   probes: Mapping[str, str | Path] | None = None,
+                                   options: FrontendOptions | None = None,
+                                   camera_of: Mapping[str, str] | None = None,
+                                   error_path: str | Path | None = None) -> FrontendResult:
+    """World-frame cameras without a board: SfM (COLMAP's own initialisation and intrinsics), then the support
+    plane, the object's place and the metric scale from its known height
+    (:func:`objcam.sfm.align.plane_height_frame`). Same outputs as :func:`estimate_cameras` (no board checks;
+    a plane-residual and an object-points check instead). InputError when the plane or the object is not found."""
+    from objcam.image_io import atomic_write_text
+    from objcam.sfm.align import _pose_matrix, apply_alignment, cameras_from_reconstruction, plane_height_frame
+
+    options = options or FrontendOptions()
+    work = Path(work_dir)
+    views = [Path(v) for v in views]
+    folder = Path(error_path) if error_path is not None else (_folder_of(views) if views else work)
+    if len(views) < options.min_views:
+        raise InputError(f"only {len(views)} view(s) for structure from motion", folder,
+                         f"take at least {options.min_views} (better 20 or more) overlapping photos around the object")
+    t0 = time.perf_counter()
+    groups_in: dict[str, list[Path]] = {"views": views}
+    targets = {k: Path(v) for k, v in (targets or {}).items()}
+    probes = {k: Path(v) for k, v in (probes or {}).items()}
+    if targets:
+        groups_in["targets"] = list(targets.values())
+    if probes:
+        groups_in["probes"] = list(probes.values())
+    image_dir = work / "images"
+    groups = prepare_images(image_dir, groups_in, copy=options.copy_images)
+    sfm = run_sfm(work, image_dir, groups, options=options.sfm, error_path=folder, camera_of=camera_of)
+    rec = sfm.load()
+    view_names = set(groups["views"])
+    reg_views = [img for img in rec.images.values() if img.has_pose and img.name in view_names]
+    cw = [np.linalg.inv(_pose_matrix(img)) for img in sorted(reg_views, key=lambda i: i.name)]
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    try:
+        sim, diag = plane_height_frame(xyz, np.array([m[:3, 3] for m in cw]), np.array([m[:3, 2] for m in cw]),
+                                       object_height, seed=options.sfm.seed)
+    except ValueError as e:
+        raise InputError(f"no metric world frame without a board: {e}", folder,
+                         "print the ChArUco board and add [board] to capture.toml; without it the scale rests on "
+                         "SfM points on the object and the plane: a textured object on a flat, textured "
+                         "surface") from None
+    apply_alignment(rec, sim)
+    rec.write(_mk(work / "sparse" / "0"))
+    cams = cameras_from_reconstruction(rec)
+    out: dict[str, dict[str, Camera]] = {"views": {}, "targets": {}, "probes": {}}
+    for group, names in groups.items():
+        keys = [p.stem for p in groups_in[group]] if group == "views" else list(
+            targets if group == "targets" else probes)
+        for key, f in zip(keys, names):
+            if f in cams:
+                out[group][key] = cams[f]
+                cams[f].save(_mk(work / "cameras" / group) / f"{key}.json")
+    checks = [c for c in grade_checks(
+        n_views=len(views), views_registered=len(out["views"]), targets=list(targets),
+        targets_registered=list(out["targets"]), mean_reprojection_px=sfm.mean_reprojection_error_px,
+        views_with_board=len(out["views"]), board_corner_rms_mm=0.0, board_plane_rms_mm=0.0,
+        board_reprojection_px=None, probes=list(probes), probes_registered=list(out["probes"]))
+        if not c.name.startswith("board")]
+    g = "green" if diag["plane_rms_mm"] < 1.0 else ("yellow" if diag["plane_rms_mm"] < 3.0 else "red")
+    checks.append(Check(name="support plane", grade=g, value=f"{diag['plane_rms_mm']:.2f} mm RMS",
+                        detail=f"{diag['plane_inliers']} points", fix=None if g == "green" else
+                        "the surface under the object is not flat or not textured: use a flat, textured sheet"))
+    g = "green" if diag["object_points"] >= 50 else "yellow"
+    checks.append(Check(name="object height", grade=g, value=f"{diag['object_points']} points on the object",
+                        detail="the metric scale rests on the highest points found on the object",
+                        fix=None if g == "green" else "few points on the object make the scale uncertain: print "
+                        "the board for a reliable scale"))
+    colmap_cameras = {}
+    for img in rec.images.values():
+        c = rec.cameras[img.camera_id]
+        colmap_cameras.setdefault(img.name.split("/")[0], {"model": c.model.name,
+                                                           "params": [float(x) for x in c.params]})
+    seconds = {f"sfm_{k}": v for k, v in sfm.seconds.items()} | {"total": round(time.perf_counter() - t0, 2)}
+    result = FrontendResult(views=out["views"], targets=out["targets"], probes=out["probes"], sfm=sfm,
+                            calibration={}, colmap_cameras=colmap_cameras, alignment=diag, bundle=None,
+                            target_pnp={}, checks=checks, seconds=seconds)
+    atomic_write_text(work / "report.json", json.dumps(
+        {"grade": result.grade, "checks": [c.model_dump() for c in checks], "sfm": sfm.model_dump(),
+         "alignment": diag, "colmap_cameras": colmap_cameras, "seconds": seconds,
+         "options": options.model_dump(mode="json")}, indent=2))
+    return result

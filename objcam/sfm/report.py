@@ -36,7 +36,9 @@ def _grade(value: float, green: float, yellow: float) -> Grade:
 def grade_checks(*, n_views: int, views_registered: int, targets: list[str], targets_registered: list[str],
                  mean_reprojection_px: float, views_with_board: int, board_corner_rms_mm: float,
                  board_plane_rms_mm: float, board_reprojection_px: float | None,
-                 target_pnp: dict[str, dict] | None = None, board_square_mm: float = 30.0) -> list[Check]:
+                 target_pnp: dict[str, dict] | None = None, board_square_mm: float = 30.0,
+                 probes: list[str] | None = None, probes_registered: list[str] | None = None,
+                 probe_pnp: dict[str, dict] | None = None) -> list[Check]:
     """The checks of one front-end run (see :func:`objcam.sfm.frontend.estimate_cameras`)."""
     checks: list[Check] = []
     frac = views_registered / max(1, n_views)
@@ -53,6 +55,14 @@ def grade_checks(*, n_views: int, views_registered: int, targets: list[str], tar
                             fix=None if not missing else
                             "shoot the target from near the ring of views, with the board in frame, or add views "
                             "between the ring and the target"))
+    missing_p = [p for p in probes or [] if p not in (probes_registered or [])]
+    if probes:
+        checks.append(Check(name="probes registered", grade="red" if missing_p else "green",
+                            value=f"{len(probes) - len(missing_p)}/{len(probes)} chrome-ball photos",
+                            detail=("not registered: " + ", ".join(missing_p)) if missing_p else "",
+                            fix=None if not missing_p else
+                            "shoot the chrome ball from the target's tripod position with the board's ring in "
+                            "frame, or give the probe's camera in capture.toml"))
     g = _grade(mean_reprojection_px, 0.7, 1.5)
     checks.append(Check(name="SfM reprojection error", grade=g, value=f"{mean_reprojection_px:.2f} px",
                         fix=None if g == "green" else "blurred or shifted photos: use a tripod or a faster shutter, "
@@ -78,10 +88,11 @@ def grade_checks(*, n_views: int, views_registered: int, targets: list[str], tar
                             detail="board corners through the final cameras",
                             fix=None if g == "green" else "board corners do not fit the cameras: blur, a warped "
                             "print, or board settings that do not match the print"))
-    for name, r in (target_pnp or {}).items():
+    for label, name, r in [("target", n, r) for n, r in (target_pnp or {}).items()] + \
+            [("probe", n, r) for n, r in (probe_pnp or {}).items()]:
         d, a = r["centre_mm"], r["rotation_deg"]
         g = "green" if (d < 2.0 and a < 0.2) else ("yellow" if (d < 10.0 and a < 1.0) else "red")
-        checks.append(Check(name=f"target {name} pose", grade=g, value=f"{d:.2f} mm, {a:.3f} deg",
+        checks.append(Check(name=f"{label} {name} pose", grade=g, value=f"{d:.2f} mm, {a:.3f} deg",
                             detail="board-only PnP vs the final pose",
                             fix=None if g == "green" else "keep more of the board (its whole ring) in the target "
                             "view, in focus"))
