@@ -23,7 +23,7 @@ def small_full_capture(tmp_path_factory) -> Path:
     root = tmp_path_factory.getbasetemp() / "small_full_capture"
     root.mkdir(exist_ok=True)
     cap = root / "capture"
-    with open(root / ".lock", "w") as lock:  # pytest-xdist workers share the base folder's parent, not this one
+    with open(root / ".lock", "w") as lock:  # one render even if two processes share this base folder
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (cap / "truth" / "truth.json").is_file():
             synthesize_full(cap, FullSynthParams(**SMALL_FULL))
