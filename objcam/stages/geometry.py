@@ -33,12 +33,8 @@ from objcam.schemas.capture import CaptureManifest, try_load
 NAME = "geometry"
 DEPS: tuple[str, ...] = ("ingest", "sfm")
 VERSION = "1"
-APPLIES_WHEN = "the capture has [views]"
+APPLIES_WHEN = "the capture has [views]"  # via DEPS: applies wherever sfm does
 
-
-def applies(capture: Path) -> bool:
-    m = try_load(capture)
-    return m is not None and m.views is not None
 
 
 def input_files(capture: Path) -> list[Path]:

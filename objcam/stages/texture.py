@@ -31,17 +31,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from objcam.geometry.bake import BakeParams
 from objcam.pipeline.stage import StageInputs, StageOutputs
-from objcam.schemas.capture import CaptureManifest, try_load
+from objcam.schemas.capture import CaptureManifest
 
 NAME = "texture"
 DEPS: tuple[str, ...] = ("ingest", "sfm", "geometry")
 VERSION = "1"
-APPLIES_WHEN = "the capture has [views]"
+APPLIES_WHEN = "the capture has [views]"  # via DEPS: applies wherever sfm does
 
-
-def applies(capture: Path) -> bool:
-    m = try_load(capture)
-    return m is not None and m.views is not None
 
 
 def input_files(capture: Path) -> list[Path]:
