@@ -124,3 +124,49 @@ def test_no_truth_and_missing_artifacts_get_notes(capture, tmp_path):
     assert "no truth" in text.lower()
     assert "no gains.png" in text and "no stage.json" in text
     assert res.metrics["targets"] == 1
+
+
+BENCH = {"transport": [{"setting": "direct K=4", "seconds": 5.0}, {"setting": "auto", "seconds": 20.0}],
+         "solve": [{"setting": "direct K=4", "method": "exact", "hdri": "forest", "solve_s": 0.5, "ssim": 0.6,
+                    "relative_rmse": 0.9},
+                   {"setting": "auto", "method": "paper", "hdri": "city", "solve_s": 1.0, "ssim": 0.4,
+                    "relative_rmse": 2.0},
+                   {"setting": "missing A", "method": "exact", "hdri": "city", "solve_s": 1.0, "ssim": 0.4,
+                    "relative_rmse": 2.0}]}
+
+
+def test_bench_points_add_the_time_to_build_A():
+    from objcam.report.speed import bench_points
+
+    pts = bench_points(BENCH)
+    assert [(p["label"], p["seconds"], p["ssim"]) for p in pts] == [("direct K=4 / exact", 5.5, 0.6),
+                                                                    ("auto / paper", 21.0, 0.4)]
+
+
+@pytest.fixture(scope="module")
+def joint_capture(tmp_path_factory) -> Path:
+    """Unknown support albedo, two illuminations: the joint solve writes an albedo the report must show."""
+    root = tmp_path_factory.mktemp("report-joint")
+    bench = root / "results.json"
+    bench.write_text(json.dumps(BENCH))
+    cap = root / "capture"
+    assert main(["synth", str(cap), "--envmap", "sunrise", "--spp", "16", "--rotations-deg", "[0, 150]",
+                 "--support-albedo", "dots", "--support-albedo-known", "false", "--texture-scale", "0.03",
+                 "--cameras", '[{"width": 40, "height": 40, "distance": 0.3}]']) == 0
+    assert main(["run", str(cap), "--quiet", "--set", "transport.model=direct", "--set", "transport.env_height=8",
+                 "--set", f"report.bench_results={bench}"]) == 0
+    return cap
+
+
+def test_report_shows_albedo_and_speed_against_error(joint_capture):
+    work = joint_capture / "objcam"
+    c, text = check_page(work / "report" / "index.html")
+    metrics = json.loads((work / "evaluate" / "metrics.json").read_text())
+    for t in ("t0-rot000", "t0-rot150") if "t0-rot000" in metrics else metrics:
+        m = metrics[t]
+        assert (work / "solve" / t / "albedo.png").is_file()
+        assert fmt(m["albedo_relative_rmse"]) in text and fmt(m["albedo_ssim"]) in text
+    assert text.count("Recovered albedo") == len(metrics)
+    assert "estimated albedo per pixel" in text and "true albedo | estimate" in text
+    assert "Speed against error" in text and "benchmark: results.json (2 runs)" in text
+    assert c.images >= 10 + 3 * len(metrics)

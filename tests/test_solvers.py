@@ -362,3 +362,35 @@ def test_timing_n1024_three_channels():
     elapsed = time.perf_counter() - t0
     assert np.all(r.kkt_residual <= KKT_TOL)
     assert elapsed < 2.0, f"exact solve took {elapsed:.2f} s at N=1024, 3 channels"
+
+
+@pytest.mark.parametrize("zeros", [0.1, 0.6])
+def test_schur_free_blocks_match_per_block_cholesky_and_scipy(zeros):
+    """The Schur-complement free-block solves (one Cholesky of Q per solve) reach the same exact minimiser as
+    per-block Cholesky and as scipy's nnls, with few zeros and with many (the per-block fallback)."""
+    rng = np.random.default_rng(7)
+    grid = EnvGrid(16)
+    keep = np.arange(300)
+    n, m = keep.size, 500
+    A = rng.random((m, n)) * (rng.random((m, n)) < 0.3)
+    X_true = rng.random((n, 3)) * (rng.random((n, 3)) > zeros)
+    X_true[5] = 300.0  # a sun
+    Y = A @ X_true + 0.05 * rng.standard_normal((m, 3))
+    G = A.T @ A
+    ls, lr = absolute_weights(G, 1e-3, 1e-6)
+    D = difference_operator(grid, keep)
+    Q = regularized_gram(G, D, ls, lr)
+    B = A.T @ Y
+    fast = solve_exact(Q, B, schur=True)
+    slow = solve_exact(Q, B, schur=False)
+    assert fast.info["schur"] and not slow.info["schur"]
+    assert np.all(fast.kkt_residual <= KKT_TOL) and fast.converged
+    assert np.sum(fast.x == 0) > 0.05 * fast.x.size  # the constraint is active: a real test
+    assert np.allclose(fast.x, slow.x, rtol=1e-9, atol=1e-9 * np.abs(slow.x).max())
+    Dd = D.toarray()
+    A_st = np.vstack([A, np.sqrt(ls) * Dd, np.sqrt(lr) * np.eye(n)])
+    xs, _ = so.nnls(A_st, np.concatenate([Y[:, 1], np.zeros(Dd.shape[0] + n)]), maxiter=50 * n)
+    assert np.linalg.norm(fast.x[:, 1] - xs) <= 1e-8 * np.linalg.norm(xs)
+    # warm start from the answer: one round, same x
+    warm = solve_exact(Q, B, schur=True, passive0=fast.x > 0)
+    assert warm.iterations == 1 and np.allclose(warm.x, fast.x, rtol=1e-10, atol=1e-10 * np.abs(fast.x).max())

@@ -3,7 +3,9 @@
 Every image is inlined as a base64 PNG data URI (no external resources, no JavaScript), so the one file can be
 mailed. Per target: the overview (target photo | truth | estimate) or, without truth, the target and the
 recovered envmap; the error map; prediction and residual; the analysis images of its camera group (leverage,
-uncertainty, spectrum, gains) and its Cook's distance. Then tables of the stages (time, peak memory, summary,
+uncertainty, spectrum, gains) and its Cook's distance; with unknown albedo the recovered albedo, its mask and
+the comparison with the true albedo. A speed-against-error plot places the run among the benchmark's settings
+(``make bench``'s results.json).  Then tables of the stages (time, peak memory, summary,
 key) and of the metrics (evaluate, solve, analysis). Missing optional artifacts get a note, never a crash.
 """
 
@@ -22,13 +24,13 @@ from objcam.report import html as H
 
 NAME = "report"
 DEPS = ("scene", "transport", "solve", "evaluate", "analysis")
-VERSION = "1"
-CODE_DEPS = ("objcam.report.html",)
+VERSION = "2"
+CODE_DEPS = ("objcam.report.html", "objcam.report.speed")
 
 EXPOSURE_NOTE = ("Envmaps share one exposure: divided by the truth's 99th percentile (over solved texels), clipped "
                  "to 1, gamma 1/2.2; texels the solve did not model are dimmed.")
 EVAL_KEYS = ("ssim", "relative_rmse", "relative_rmse_solid_angle", "tonemapped_rmse", "brightest_angle_deg",
-             "scale", "best_scale")
+             "scale", "best_scale", "albedo_relative_rmse", "albedo_ssim")
 SOLVE_KEYS = ("method", "texels", "pixels_used", "pixels_excluded", "iterations", "kkt_residual_max",
               "solve_seconds", "relative_image_residual")
 GROUP_KEYS = ("pixels", "texels", "effective_rank", "entropy_effective_rank", "ridge_dof", "condition_number",
@@ -39,6 +41,17 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
     max_image_width: int = Field(1200, ge=64, description="wider PNGs are downscaled (area) before inlining, "
                                                           "to keep the page small")
+    bench_results: str | None = Field(None, description="the benchmark's results.json for the speed-against-error "
+                                      "plot; None: bench/results.json (or bench/out/results.json) of the source "
+                                      "checkout, if there is one")
+
+
+def input_files(capture: Path) -> list[Path]:
+    """The default benchmark results: a new benchmark run redraws the speed-against-error plot."""
+    from objcam.report.speed import find_bench_results
+
+    found = find_bench_results()
+    return [found] if found is not None else []
 
 
 def _json(path: Path) -> Any:
@@ -69,6 +82,57 @@ def _stage_table(up: dict[str, Path]) -> tuple[str, list[str]]:
     return H.table(("stage", "wall time (s)", "peak RSS (MB)", "summary", "key", "finished"), rows), names
 
 
+def _albedo_panel(sd: Path, ed: Path, m: dict | None, png) -> str:
+    """The estimated albedo of a joint solve (nothing when the albedo was known)."""
+    est = png(sd / "albedo.png")
+    if est is None:
+        return ""
+    parts = ["<h3>Recovered albedo</h3>"]
+    if m and m.get("albedo_relative_rmse") is not None:
+        parts.append(f"<p>Albedo relative RMSE <strong>{H.esc(H.fmt(m['albedo_relative_rmse']))}</strong>, SSIM "
+                     f"<strong>{H.esc(H.fmt(m.get('albedo_ssim')))}</strong> (after the best-fit scale per "
+                     "channel: with unknown albedo, albedo and envmap are known only up to one scale).</p>")
+    parts.append(H.grid([
+        H.figure(est, "estimated albedo per pixel (linear albedo clipped to [0, 1], gamma 1/2.2, no exposure "
+                 "scaling; up to one scale per channel)"),
+        H.figure(png(sd / "albedo_mask.png"), "where the albedo was unknown and estimated (white)"),
+        H.figure(png(ed / "albedo_compare.png"), "true albedo | estimate (best-fit scale) | 4 x |error| "
+                 "(gamma 1/2.2)", missing="no albedo truth to compare with (evaluate/<target>/albedo_compare.png)"),
+    ]))
+    return "".join(parts)
+
+
+def _speed_section(up: dict[str, Path], targets: list[str], metrics: dict, bench_path: str | None) -> str:
+    """Speed against error: the benchmark's settings with this run's targets overlaid."""
+    from objcam.report.speed import bench_points, find_bench_results, load_results, speed_error_png
+
+    parts = ['<section id="speed"><h2>Speed against error</h2>']
+    found = find_bench_results(bench_path)
+    results = load_results(found) if found is not None else None
+    points = bench_points(results) if results else []
+    transport = _json(up["transport"] / "stage.json") if "transport" in up else None
+    a_seconds = (transport or {}).get("wall_seconds") if isinstance(transport, dict) else None
+    mine = []
+    for t in targets:
+        s = _json(up["solve"] / t / "solve.json") if "solve" in up else None
+        m = metrics.get(t) if isinstance(metrics, dict) else None
+        if isinstance(s, dict) and isinstance(m, dict) and a_seconds is not None and s.get("solve_seconds"):
+            mine.append({"name": t, "seconds": float(a_seconds) + float(s["solve_seconds"]),
+                         "ssim": m.get("ssim"), "relative_rmse": m.get("relative_rmse")})
+    if not points and not mine:
+        parts.append(H.note("no benchmark results (run `make bench`) and no metrics for this run: nothing to plot"))
+    else:
+        cap = ("time to build A plus solve against envmap SSIM and relative RMSE; colours: HDRI, markers: solve "
+               "method, stars: this capture's targets (its transport wall time + solve time)")
+        if points:
+            cap += f"; benchmark: {found.name} ({len(points)} runs)"
+        else:
+            cap += "; no benchmark results found (run `make bench`)"
+        parts.append(H.figure(speed_error_png(points, mine), cap, plot=True))
+    parts.append("</section>")
+    return "".join(parts)
+
+
 def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | None, width: int,
                     seen_groups: set[str]) -> str:
     png = lambda p: H.read_png(p, width)  # noqa: E731
@@ -97,6 +161,7 @@ def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | Non
             H.figure(png(sd / "envmap.png"), "recovered envmap (lat-long, zenith at top; own 99th percentile, "
                      "clipped, gamma 1/2.2)"),
         ]))
+    parts.append(_albedo_panel(sd, ed, m if isinstance(m, dict) else None, png))
     # fit
     parts.append("<h3>Fit</h3>")
     parts.append(H.grid([
@@ -140,8 +205,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
 
     body: list[str] = []
     toc = "".join(f'<li><a href="#target-{H.esc(t)}">{H.esc(t)}</a></li>' for t in targets)
-    body.append(f"<nav><p>Targets:</p><ul>{toc}</ul><p><a href=\"#stages\">Stages</a> \u00b7 "
-                f"<a href=\"#metrics\">Metrics</a></p></nav>")
+    body.append(f"<nav><p>Targets:</p><ul>{toc}</ul><p><a href=\"#speed\">Speed against error</a> \u00b7 "
+                "<a href=\"#stages\">Stages</a> \u00b7 <a href=\"#metrics\">Metrics</a></p></nav>")
     if not has_truth:
         body.append(H.note("This capture has no truth/ (evaluate wrote {\"truth\": false}): no accuracy metrics "
                            "or truth comparison."))
@@ -150,6 +215,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         body.append(_target_section(t, up, metrics if has_truth else {}, groups.get(t), params.max_image_width,
                                     seen))
 
+    body.append(_speed_section(up, targets, metrics if has_truth else {}, params.bench_results))
     stage_html, stage_names = _stage_table(up)
     body.append(f'<section id="stages"><h2>Stages</h2>{stage_html}</section>')
 
