@@ -84,8 +84,9 @@ def test_gcv_picks_a_weight_near_the_true_optimum(case):
 
 def test_discrepancy_principle(case):
     grid, keep, A, Y, x, sigma, best, err, ls_grid = case
-    ls, lr, info = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma)
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma, noise_model="gaussian")
     assert best / 10 <= ls <= best * 10
+    assert not any("floor" in n for n in info["notes"])  # pure noise: the classic rule
     # the chosen ls puts the (unconstrained) residual at the target: the largest ls that meets it
     K = gram(A)
     s = data_scale(K)
@@ -130,5 +131,31 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match="gcv"):
         choose_weights(A, Y, grid, keep, rule="lcurve", lr_grid=[1e-4, 1e-3])
     # a noise level far too small: no ls meets the discrepancy, said so
-    ls, lr, info = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma * 1e-3)
+    ls, lr, info = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma * 1e-3, model_error=False)
     assert any("no ls" in n for n in info["notes"])
+    with pytest.raises(ValueError, match="noise_model"):
+        choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma, noise_model="poisson")
+
+
+def test_discrepancy_measured_from_the_model_error_floor():
+    # the photo is the model's prediction times a smooth 3% shading error (what a light-transport model misses near
+    # an object), plus 0.2% noise: the residual never reaches the noise energy
+    grid, keep, A, _, x, _ = toy(sun=20.0, noise=0.0, seed=4)
+    rng = np.random.default_rng(4)
+    clean = A.astype(np.float64) @ x
+    m_side = int(np.sqrt(A.shape[0]))
+    u = np.linspace(0, np.pi, m_side)
+    err = 0.03 * np.outer(np.sin(2 * u), np.cos(u)).ravel()[:, None]
+    sigma = 0.002 * float(np.median(clean))
+    Y = clean * (1 + err) + sigma * rng.standard_normal(clean.shape)
+    ls_grid = np.logspace(-7, 2, 37)
+    errs = true_error_curve(grid, keep, A, Y, x, ls_grid)
+    plain, _, ip = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma, noise_model="gaussian",
+                                  model_error=False)
+    floor, _, inf = choose_weights(A, Y, grid, keep, rule="discrepancy", sigma=sigma, noise_model="gaussian")
+    assert any("no ls" in n for n in ip["notes"]) and plain == pytest.approx(ls_grid[0])
+    assert any("floor" in n for n in inf["notes"]) and floor > 100 * plain
+    e = lambda v: np.linalg.norm(solve_envmap(A, Y, grid, keep, ls=v).x - x) / np.linalg.norm(x)  # noqa: E731
+    assert e(floor) < e(plain) and e(floor) <= 1.5 * errs.min()
+    # the residual at the choice is the floor plus the noise energy
+    assert inf["target_residual"] == pytest.approx(inf["residual_floor"] + inf["noise_energy"])

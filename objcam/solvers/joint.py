@@ -20,6 +20,25 @@ first-difference (gradient) operator on camera p's image grid: one row ``rho_i -
 squared contrast. There are no edges between cameras. ``lp = 0`` (default) drops the term and makes the albedo
 step closed form.
 
+Edge-preserving envmap prior (``prior="edges"``; the solve stage's default). The quadratic ``ls ||D x_lc||^2``
+charges an envmap edge by its squared height and smears every edge the shadows cannot pin down (a sun, a tree
+line). The edge prior is the Huber penalty of :mod:`objcam.solvers.edges` on each target's edges, shared by the
+colour channels:
+
+    sum_l [ ls s_l 2 C sum_e huber_eps_l(r_le) ] + lr sum_lc ||x_lc||^2,   r_le = sqrt(mean_c (D x_lc)_e^2),
+
+with ``s_l`` the RMS edge height of target l's envmap after the first x-step (which uses the quadratic prior) and
+``eps_l = edge_eps s_l``; both are then fixed, so F is one fixed function from that point on (the histories start
+there). Near r = s_l the penalty has the quadratic prior's slope, so ``ls`` keeps its meaning. The channels are
+coupled only through r_le, and the penalty is handled by majorise-minimise inside the alternation: at the current
+point X' the Huber is replaced by its quadratic majoriser, i.e. the quadratic prior with per-edge weights
+``W_le = s_l / max(r_le(X'), eps_l)`` (equal to F at X', above it elsewhere). That majoriser is again separable per
+channel, so every per-channel block step below applies unchanged, and a step that lowers the majoriser lowers F.
+The weights are moved to the current point after every block that changes x (subspace proposal, scale step,
+x-step); the x-step is followed by ``edge_steps - 1`` more majorise-minimise x-steps on the same Gram matrices
+(factorisations only). The scale step minimises the true Huber objective. So F is non-increasing after every
+sub-step, as with the quadratic prior.
+
 Weights. ``ls`` and ``lr`` are relative to ``s' = mean(diag(sum_p A'_p^T A'_p))``, the data scale of the
 transport at albedo 1 (the largest the albedo may be) -- the convention of :mod:`objcam.solvers.regularization`
 applied to A' instead of diag(rho) A'. (A known-albedo solve with ``A = diag(rho) A'`` and relative weight w uses
@@ -31,10 +50,13 @@ data ties it to its own value at rho = 1. ``relative=False`` takes all three as 
 Exact alternation (``method="exact"``): block-coordinate descent, each block solved exactly, so the objective is
 non-increasing (``JointResult.step_history`` records it after every sub-step):
 
-1. x-step: for fixed rho every x_lc solves the convex QP ``min x^T Q_c x - 2 b_lc^T x, x >= 0`` with one Gram
-   matrix per channel ``Q_c = sum_p A'_p^T diag(rho_pc^2) A'_p + ls D^T D + lr I`` shared by the L targets and
-   ``b_lc = sum_p A'_p^T (rho_pc * y_plc)``; solved by :func:`objcam.solvers.nnls.solve_exact` (warm-started
-   from the previous free set). Forming Q_c (M N^2 flops per channel) is the dominant cost.
+1. x-step: for fixed rho every x_lc solves the convex QP ``min x^T Q_lc x - 2 b_lc^T x, x >= 0`` with one
+   Gram matrix per channel ``G_c = sum_p A'_p^T diag(rho_pc^2) A'_p``, shared by the L targets (and by the
+   channels while the albedo is grey, as at the start), ``Q_lc = G_c + ls D^T W_l D + lr I`` (W_l = 1 for the
+   quadratic prior: then one Q_c and one factorisation serve all targets) and ``b_lc = sum_p A'_p^T (rho_pc *
+   y_plc)``; solved by :func:`objcam.solvers.nnls.solve_exact` (warm-started from the previous free set).
+   Forming G_c (2 M N^2 flops per channel) is the dominant cost; the Gram matrices of one albedo are cached for
+   the sweep (majorise-minimise x-steps, the final step).
 2. rho-step: for fixed x, with ``s_pil = (A'_p x_lc)_i``, the albedo problem is
    ``min rho^T H rho - 2 beta^T rho`` over the box, ``H = diag(a) + lp G^T G``, ``a_i = sum_l s_il^2``,
    ``beta_i = sum_l s_il y_il``. With lp = 0 it is separable: ``rho_i = clip(beta_i / a_i, rho_min, 1)``. With
@@ -61,8 +83,8 @@ can raise the objective, because each only proposes a point and the proposal is 
 block step it replaces:
 
 * subspace Gauss-Newton (:class:`_SubspaceGN`, ``gn_rank`` = k, default 128; 0 disables): before the rho-step,
-  a variable-projection Gauss-Newton step for x restricted to the top-k eigenvectors of ``sum_p A'^T A'`` (with
-  each target's active texels held at 0), followed by the exact rho-step at the new x; kept if the result beats
+  a variable-projection Gauss-Newton step for x restricted to the top-k eigenvectors of the first x-step's Gram
+  matrix (with each target's active texels held at 0), followed by the exact rho-step at the new x; kept if it beats
   the exact rho-step at the old x (backtracking 1, 1/2, 1/4). Costs L(L+1)/2 weighted k x k Gram matrices of
   ``A' V`` per channel, a few percent of one N x N Gram;
 * Anderson acceleration (type II, depth 5) of the albedo sequence: the extrapolated albedo is tried with its
@@ -70,8 +92,18 @@ block step it replaces:
   when it is not).
 
 The Gram matrices of the sweeps are formed from float32 products accumulated in float64 (``fast_gram``, ~2x
-faster, entries to ~1e-7) when A' is float32; an x-step that would raise the objective is redone in float64 and
-the last x-step is always float64.
+faster, entries to ~1e-7) when A' is float32; an x-step that would raise the objective is redone in float64. The
+last x-step is exact without a float64 Gram matrix: :func:`objcam.solvers.jointqp.solve_nnls_pcg` solves it with
+the exact float64 operator (two passes over A' per product) by conjugate gradients preconditioned with the last
+sweep's float32 Gram matrices (formed at the final albedo), which converge in a few products; its KKT residual is
+measured with the exact operator. (``xsolver="pcg"`` does every x-step that way, with a reference Gram refreshed
+when the albedo has moved; memory-bound, it measured slower than forming the Gram matrices on a loaded 2-core
+machine.)
+
+Stopping rule: a sweep is {rho-step, subspace proposal, scale step, (Anderson-extrapolated) x-step,
+majorise-minimise x-steps}; the solve stops when the relative decrease of the objective over one sweep is below
+``tol`` (per channel with the quadratic prior; of the total with the edge prior, whose edges couple the channels)
+or after ``max_iter`` sweeps.
 
 Scale ambiguity. Only the regularisers fix the global scale per channel (a c with rho -> c rho, x -> x / c
 leaves the data unchanged). With lp = 0 the envmap priors prefer small x, so the scale step pushes the largest
@@ -103,6 +135,7 @@ from scipy.sparse.linalg import splu
 
 from objcam.envmap import EnvGrid
 from objcam.metrics import relative_rmse
+from objcam.solvers.jointqp import solve_nnls_pcg
 from objcam.solvers.nnls import kkt_residual, solve_exact
 from objcam.solvers.regularization import DEFAULT_LR_REL, DEFAULT_LS_REL, difference_operator
 from objcam.solvers.search import golden_section
@@ -114,6 +147,11 @@ DEFAULT_RHO_MIN = 1e-3
 DEFAULT_RHO0 = 0.5
 
 _BLOCK_BYTES = 64 * 2**20
+#: Largest A' of which float64 and transposed float32 copies are kept (bigger ones are converted block by block).
+_COPY_BYTES = 2 * 2**30
+
+#: Envmap priors: quadratic smoothness, or the edge-preserving Huber prior (objcam.solvers.edges' model).
+PRIORS = ("smooth", "edges")
 
 
 class NoValidPixelsError(ValueError):
@@ -421,7 +459,7 @@ class JointResult:
 class _Joint:
     """Prepared data and the per-channel kernels of the joint problem."""
 
-    def __init__(self, blocks, grid, texel_index, ls, lr, lp, relative, rho_min):
+    def __init__(self, blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior="smooth", edge_eps=0.05):
         blocks = [_as_block(b) for b in blocks]
         if not blocks:
             raise NoValidPixelsError("joint solve: no camera blocks given -- nothing constrains the envmap")
@@ -485,10 +523,27 @@ class _Joint:
                     raise ValueError(f"camera {k}: lp > 0 needs pixel_index and image_shape for the albedo prior")
         self.Gs = [G if G is not None else sp.csr_matrix((0, A.shape[0])) for A, G in zip(self.As, self.Gs)]
         self.GtG = [(G.T @ G).tocsr() for G in self.Gs]
+        # A' in float64 for the shading and right-hand sides (each a pass over A', memory-bound: converting float32
+        # blocks on every pass cost ~3x), and transposed (N, M) float32 for the subspace Gauss-Newton's column
+        # gathers (rows of A'^T are contiguous), made on first use; within _COPY_BYTES only
+        self.A64 = [np.ascontiguousarray(A, dtype=np.float64) if A.dtype != np.float64 and A.size * 8 <= _COPY_BYTES
+                    else (A if A.dtype == np.float64 else None) for A in self.As]
+        self._AT32: list | None = None
+        self._Asq: list | None = None
         self.D = difference_operator(grid, texel_index)
-        R = self.ls * (self.D.T @ self.D) + self.lr * sp.identity(n)
-        self.R = sp.csr_matrix(R)
-        self.R_dense = self.R.toarray()
+        if prior not in PRIORS:
+            raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
+        if not edge_eps > 0:
+            raise ValueError("edge_eps must be > 0")
+        self.prior = prior
+        self.edge_eps_rel = float(edge_eps)
+        # the quadratic (majorising) envmap prior in use: per target l, ls ||diag(sqrt(W_l)) D x||^2 + lr ||x||^2;
+        # W = 1 for the smooth prior, the Huber majoriser's weights at the current point for the edge prior
+        self.W = np.ones((self.L, self.D.shape[0]))
+        self.edge_s = np.zeros(self.L)  # Huber scale s_l (fixed once set) and threshold eps_l = edge_eps s_l
+        self.edge_thr = np.zeros(self.L)
+        self.huber_on = False
+        self._R_cache: dict[int, tuple[sp.csr_matrix, np.ndarray]] = {}
         self.t_gram = 0.0
         self.grams = 0
 
@@ -507,38 +562,119 @@ class _Joint:
     # -- kernels
     def shading(self, X: np.ndarray) -> list[np.ndarray]:
         """S_p = A'_p x: list of (M_p, L, C)."""
-        Xf = X.reshape(self.n, -1)
-        return [_matmul(A, Xf).reshape(A.shape[0], self.L, self.C) for A in self.As]
+        Xf = np.ascontiguousarray(X.reshape(self.n, -1))
+        return [(A64 @ Xf if A64 is not None else _matmul(A, Xf)).reshape(A.shape[0], self.L, self.C)
+                for A, A64 in zip(self.As, self.A64)]
+
+    def weighted_col_sq(self, W: list[np.ndarray]) -> np.ndarray:
+        """``sum_p (A'_p * A'_p)^T W_p`` (N, k) for weights W_p (M_p, k): the diagonals of the weighted Grams."""
+        if self._Asq is None:
+            self._Asq = [np.square(A, dtype=np.float32) if A.size * 4 <= _COPY_BYTES else None for A in self.As]
+        out = np.zeros((self.n, W[0].shape[1] if W else 0))
+        for A, Asq, w in zip(self.As, self._Asq, W):
+            if A.shape[0] == 0:
+                continue
+            if Asq is not None:
+                out += (Asq.T @ w.astype(np.float32)).astype(np.float64)
+            else:
+                for j in range(w.shape[1]):
+                    out[:, j] += _col_sq_norms(A, w[:, j])
+        return out
+
+    def cols_t32(self, p: int, idx: np.ndarray) -> np.ndarray:
+        """``A'_p[:, idx]^T`` (|idx|, M_p) float32 from the transposed copy (contiguous rows)."""
+        if self._AT32 is None:
+            self._AT32 = [np.ascontiguousarray(A.T, dtype=np.float32) if A.size * 4 <= _COPY_BYTES else None
+                          for A in self.As]
+        AT = self._AT32[p]
+        return AT[idx] if AT is not None else np.asarray(self.As[p][:, idx].T, dtype=np.float32)
 
     def rhs(self, rho: list[np.ndarray], chans) -> np.ndarray:
         """b (N, L, C) = sum_p A'_p^T (rho_p * Y_p) (only ``chans`` filled)."""
         B = np.zeros((self.n, self.L, self.C))
         ch = np.asarray(chans)
-        for A, Y, r in zip(self.As, self.Ys, rho):
+        for A, A64, Y, r in zip(self.As, self.A64, self.Ys, rho):
             if A.shape[0] == 0:
                 continue
             U = (r[:, None, ch] * Y[:, :, ch]).reshape(A.shape[0], -1)
-            B[:, :, ch] += _tmatmul(A, U).reshape(self.n, self.L, ch.size)
+            B[:, :, ch] += (A64.T @ U if A64 is not None else _tmatmul(A, U)).reshape(self.n, self.L, ch.size)
         return B
 
     def gram(self, rho: list[np.ndarray], c: int, cache: dict, fast: bool = False) -> np.ndarray:
+        """The data Gram matrix ``sum_p A'_p^T diag(rho_pc^2) A'_p`` (N, N) (no prior), cached by rho's values."""
         key = bytes([fast]) + b"".join(np.ascontiguousarray(r[:, c]).tobytes() for r in rho)
         if key in cache:
             return cache[key]
         t0 = time.perf_counter()
         Q = _weighted_gram(self.As, [r[:, c] ** 2 for r in rho], self.n, fast=fast)
-        Q += self.R_dense
         self.t_gram += time.perf_counter() - t0
         self.grams += 1
         cache[key] = Q
         return Q
 
+    # -- the envmap prior
+    def R(self, l: int) -> sp.csr_matrix:
+        """Target l's quadratic prior matrix ``ls D^T diag(W_l) D + lr I`` (sparse; the majoriser for edges)."""
+        return self._R(l)[0]
+
+    def R_dense(self, l: int) -> np.ndarray:
+        return self._R(l)[1]
+
+    def _R(self, l: int):
+        key = hash(self.W[l].tobytes())
+        hit = self._R_cache.get(l)
+        if hit is None or hit[0] != key:
+            R = sp.csr_matrix(self.ls * (self.D.T @ sp.diags(self.W[l]) @ self.D) + self.lr * sp.identity(self.n))
+            hit = (key, R, R.toarray())
+            self._R_cache[l] = hit
+        return hit[1], hit[2]
+
+    def edge_norms(self, X: np.ndarray) -> np.ndarray:
+        """(L, E) RMS over channels of the differences ``D x_lc`` of every target."""
+        DX = (self.D @ X.reshape(self.n, -1)).reshape(-1, self.L, self.C)
+        return np.sqrt(np.mean(DX * DX, axis=2)).T
+
+    def start_huber(self, X: np.ndarray) -> None:
+        """Fix the Huber scale s_l (RMS edge of the current x_l) and threshold; tangent weights at X."""
+        if self.prior != "edges" or self.ls <= 0:
+            return
+        r = self.edge_norms(X)
+        s = np.sqrt(np.mean(r * r, axis=1)) if r.shape[1] else np.zeros(self.L)
+        # a flat envmap has no edge scale: borrow the largest of the others (or keep it quadratic if none)
+        s = np.where(s > 0, s, s.max() if s.size else 0.0)
+        if not np.all(s > 0):
+            return
+        self.edge_s, self.edge_thr = s, self.edge_eps_rel * s
+        self.huber_on = True
+        self.tangent(X)
+
+    def tangent(self, X: np.ndarray) -> None:
+        """Edge prior: move the quadratic majoriser's weights to X, ``W_le = s_l / max(r_le, eps_l)``."""
+        if not self.huber_on:
+            return
+        r = self.edge_norms(X)
+        self.W = self.edge_s[:, None] / np.maximum(r, self.edge_thr[:, None])
+
+    def prior_value(self, X: np.ndarray) -> float:
+        """The envmap prior of the objective (total over targets and channels).
+
+        smooth: ``sum_lc ls ||D x_lc||^2 + lr ||x_lc||^2``; edges: ``sum_l ls s_l 2 C sum_e huber_eps_l(r_le)
+        + lr ||X||^2`` with r_le the RMS over channels of (D x_lc)_e."""
+        if not self.huber_on:
+            Xf = X.reshape(self.n, -1)
+            DX = self.D @ Xf
+            return float(self.ls * np.sum(DX * DX) + self.lr * np.sum(Xf * Xf))
+        r = self.edge_norms(X)
+        h = np.where(r <= self.edge_thr[:, None], r * r / (2 * self.edge_thr[:, None]),
+                     r - self.edge_thr[:, None] / 2)
+        return float(self.ls * 2 * self.C * np.sum(self.edge_s * h.sum(axis=1)) + self.lr * np.sum(X * X))
+
     def reg_x(self, X: np.ndarray) -> np.ndarray:
-        """(C,) sum_l ls ||D x_lc||^2 + lr ||x_lc||^2."""
-        Xf = X.reshape(self.n, -1)
-        DX = self.D @ Xf
-        v = self.ls * np.sum(DX * DX, axis=0) + self.lr * np.sum(Xf * Xf, axis=0)
-        return v.reshape(self.L, self.C).sum(axis=0)
+        """(C,) the quadratic prior in use: sum_l ls ||diag(sqrt(W_l)) D x_lc||^2 + lr ||x_lc||^2 (for the edge
+        prior the majoriser at the current tangent point, up to a constant)."""
+        DX = (self.D @ X.reshape(self.n, -1)).reshape(-1, self.L, self.C)
+        v = self.ls * np.einsum("le,elc->c", self.W, DX * DX)
+        return v + self.lr * np.einsum("nlc,nlc->c", X, X)
 
     def reg_rho(self, rho: list[np.ndarray]) -> np.ndarray:
         """(C,) lp sum_p ||G_p rho_pc||^2."""
@@ -557,7 +693,18 @@ class _Joint:
         return out
 
     def objective(self, rho, X, S) -> np.ndarray:
+        """(C,) per channel with the quadratic prior in use (the majoriser at the tangent point for edges): what
+        the per-channel decisions of a sweep compare."""
         return self.data(rho, S) + self.reg_x(X) + self.reg_rho(rho)
+
+    def true_objective(self, rho, X, S) -> np.ndarray:
+        """(C,) the objective F: data and albedo prior per channel; the envmap prior, which the edge prior shares
+        between the channels, split equally (so the sum is F)."""
+        if not self.huber_on:
+            return self.objective(rho, X, S)
+        ridge = self.lr * np.einsum("nlc,nlc->c", X, X)
+        return (self.data(rho, S) + self.reg_rho(rho) + ridge
+                + (self.prior_value(X) - float(ridge.sum())) / self.C)
 
     def rho_system(self, rho_p, S_p, Y_p, k, c, prox=True):
         """(H, rhs) of camera k, channel c: H = diag(a) + lp G^T G, minimise 0.5 r^T H r - rhs^T r."""
@@ -617,20 +764,22 @@ class _SubspaceGN:
     data sees best -- those in which x can compensate an albedo change: the slow valley of the alternation.
     """
 
-    def __init__(self, J: "_Joint", k: int, fast: bool):
+    def __init__(self, J: "_Joint", k: int, fast: bool, K: np.ndarray | None = None):
         self.J = J
         n = J.n
         self.k = k = int(min(k, n))
-        K = _weighted_gram(J.As, [np.ones(A.shape[0]) for A in J.As], n, fast=fast)
+        if K is None:
+            K = _weighted_gram(J.As, [np.ones(A.shape[0]) for A in J.As], n, fast=fast)
         evals, evecs = np.linalg.eigh(K)
         self.V = np.ascontiguousarray(evecs[:, ::-1][:, :k])
         self.V32 = self.V.astype(np.float32)
-        self.B = [_matmul(A, self.V).astype(np.float32) for A in J.As]
+        self.B = [(A64 @ self.V if A64 is not None else _matmul(A, self.V)).astype(np.float32)
+                  for A, A64 in zip(J.As, J.A64)]
         self.cache: dict[tuple[int, int], tuple[np.ndarray, list[np.ndarray]]] = {}
 
-    def _cols(self, A: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """``A[:, idx] @ V[idx]`` in float32 (M, k)."""
-        return np.asarray(A[:, idx], dtype=np.float32) @ self.V32[idx]
+    def _cols(self, p: int, idx: np.ndarray) -> np.ndarray:
+        """``A'_p[:, idx] @ V[idx]`` in float32 (M, k)."""
+        return self.J.cols_t32(p, idx).T @ self.V32[idx]
 
     def _basis(self, l: int, c: int, active: np.ndarray) -> list[np.ndarray]:
         """``A'_p V_l`` per camera for target l, channel c (cached; updated by the texels that changed state)."""
@@ -643,9 +792,9 @@ class _SubspaceGN:
             if on.size + off.size <= J.n // 4:
                 for p, A in enumerate(J.As):
                     if on.size:
-                        Bs[p] -= self._cols(A, on)
+                        Bs[p] -= self._cols(p, on)
                     if off.size:
-                        Bs[p] += self._cols(A, off)
+                        Bs[p] += self._cols(p, off)
                 self.cache[(l, c)] = (active.copy(), Bs)
                 return Bs
         za = np.flatnonzero(active)
@@ -655,9 +804,9 @@ class _SubspaceGN:
             if za.size == 0:
                 Bs.append(self.B[p].copy())
             elif za.size <= zf.size:
-                Bs.append(self.B[p] - self._cols(A, za))
+                Bs.append(self.B[p] - self._cols(p, za))
             else:
-                Bs.append(self._cols(A, zf) if zf.size else np.zeros_like(self.B[p]))
+                Bs.append(self._cols(p, zf) if zf.size else np.zeros_like(self.B[p]))
         self.cache[(l, c)] = (active.copy(), Bs)
         return Bs
 
@@ -692,7 +841,7 @@ class _SubspaceGN:
             Vl = [np.where(act[l][:, None], 0.0, self.V) for l in range(L)]
             Bl = [self._basis(l, c, act[l]) for l in range(L)]
             for l in range(L):
-                RVl = J.R @ Vl[l]
+                RVl = J.R(l) @ Vl[l]
                 H[l * k:(l + 1) * k, l * k:(l + 1) * k] += Vl[l].T @ RVl
                 g[l * k:(l + 1) * k] += RVl.T @ X[:, l, c]
             for p in range(J.P):
@@ -786,6 +935,12 @@ def solve_joint(
     beta: float = 0.5,
     diverge_factor: float = 10.0,
     qp_tol: float = 1e-10,
+    prior: str = "smooth",
+    edge_eps: float = 0.05,
+    edge_steps: int = 2,
+    rho_init: Sequence[np.ndarray] | None = None,
+    xsolver: str = "gram",
+    cg_refresh: int = 12,
 ) -> JointResult:
     """Jointly recover the albedo of every camera and the L envmaps (per colour channel); see the module docstring.
 
@@ -794,9 +949,14 @@ def solve_joint(
     ls, lr: envmap smoothness and ridge weights, relative to ``mean(diag(sum_p A'_p^T A'_p))``;
     lp: albedo smoothness weight, relative to ``mean_{pixels, channels} sum_l y^2``; ``relative=False`` takes
         all three as absolute.
+    prior: "smooth" (quadratic ``ls ||D x||^2``) or "edges" (the edge-preserving Huber prior, minimised by
+        majorise-minimise inside the alternation; ``edge_eps`` its threshold relative to the RMS edge,
+        ``edge_steps`` the majorise-minimise x-steps per sweep, all on the sweep's Gram matrices); see the
+        module docstring.
     method: "exact" (exact block-coordinate descent, monotone) or "paper" (damped clipped steps, ``alpha`` for x,
         ``beta`` for rho; no scale step, no acceleration).
-    tol: stop a channel when its relative objective decrease over one sweep is below ``tol``; max_iter sweeps.
+    tol: stop when the relative decrease of the objective over one sweep is below ``tol`` (smooth prior: per
+        channel; edges: of the total, which the shared edges couple); max_iter sweeps.
     rho_min: lower clip of the albedo (upper is 1).  scale_step: the exact 1-D scale minimisation (exact only).
     accelerate, anderson_depth: safeguarded Anderson acceleration of the albedo sequence (exact only; see the
         module docstring); the objective stays non-increasing.
@@ -807,6 +967,15 @@ def solve_joint(
         and the final x-step is always float64, so the returned x is exact for the returned rho.
     diverge_factor: the divergence guard (see the module docstring).
     qp_tol: tolerance of the exact x- and rho-subproblem solves.
+    rho_init: optional initial albedo per camera (list of (M_p, C)), overriding the blocks' rho0.
+    xsolver: how the sweeps' exact x-steps solve their QP: "gram" (default: form the sweep's Gram matrices,
+        float32 products with ``fast_gram``; solve exactly by :func:`objcam.solvers.nnls.solve_exact`) or "pcg"
+        (:mod:`objcam.solvers.jointqp`: Q applied by passes over A', a reference Gram matrix per channel as the
+        preconditioner, refreshed when a step needs more than ``cg_refresh`` operator applications per pivoting
+        round; memory-bound, it measured slower than "gram" on a loaded 2-core machine). Either way the final
+        x-step is polished by PCG against the exact float64 operator (:mod:`objcam.solvers.jointqp`) with the last
+        sweep's float32 Gram matrices as the preconditioner, so the returned x is exact (KKT ~ qp_tol) for the
+        returned rho without forming float64 Gram matrices. The paper's method always forms them.
 
     Raises :class:`NoValidPixelsError` (a ValueError) when no camera has a valid pixel. Runs with one BLAS thread.
     """
@@ -814,14 +983,22 @@ def solve_joint(
         raise ValueError(f"method must be 'exact' or 'paper', got {method!r}")
     if method == "paper" and not (alpha > 0 and beta > 0):
         raise ValueError("alpha and beta must be > 0")
+    if edge_steps < 1:
+        raise ValueError("edge_steps must be >= 1")
+    if xsolver not in ("pcg", "gram"):
+        raise ValueError(f"xsolver must be 'pcg' or 'gram', got {xsolver!r}")
     t_start = time.perf_counter()
-    J = _Joint(blocks, grid, texel_index, ls, lr, lp, relative, rho_min)
+    J = _Joint(blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior=prior, edge_eps=edge_eps)
     n, L, C, P = J.n, J.L, J.C, J.P
     exact = method == "exact"
     accelerate = accelerate and exact
-    timers = dict(x=0.0, rho=0.0, gn=0.0)
+    timers = dict(x=0.0, rho=0.0, gn=0.0, scale=0.0)
+    use_pcg = exact and xsolver == "pcg"
+    ref: dict = dict(G={}, stale=set(), applications=0, rounds=0, refreshes=0, steps=0)
     sizes = [A.shape[0] for A in J.As]
     splits = np.cumsum(sizes)[:-1]
+    # the Gram matrices of the current sweep, keyed by the albedo values (shared by the x-steps of one sweep)
+    gram_cache: dict = {}
 
     def flat(rho, c):
         return np.concatenate([r[:, c] for r in rho])
@@ -830,26 +1007,95 @@ def solve_joint(
         for r, part in zip(rho, np.split(z, splits)):
             r[:, c] = part
 
+    def x_step_pcg(rho, X, chans, warm, grams=None):
+        """The exact x-step by :func:`objcam.solvers.jointqp.solve_nnls_pcg`: Q applied by passes over A', the
+        preconditioner from ``grams`` {c: Gram} (e.g. this albedo's float32 Grams) or the reference Grams."""
+        t0 = time.perf_counter()
+        X = X.copy()
+        kk = np.zeros((L, C))
+        chans = [int(c) for c in chans]
+        B = J.rhs(rho, chans)
+        for c in chans:
+            if grams is None and (c not in ref["G"] or c in ref["stale"]):
+                ref["G"][c] = J.gram(rho, c, {}, fast=True)
+                ref["stale"].discard(c)
+                ref["refreshes"] += 1
+        Gs = grams if grams is not None else ref["G"]
+        cols = [(l, c) for c in chans for l in range(L)]
+        per_target = J.huber_on
+        pkeys: dict[tuple[int, int], int] = {}
+        precond, group = [], np.zeros(len(cols), dtype=np.int64)
+        for k, (l, c) in enumerate(cols):
+            key = (c, l if per_target else 0)
+            if key not in pkeys:
+                pkeys[key] = len(precond)
+                precond.append(Gs[c] + J.R_dense(key[1]))
+            group[k] = pkeys[key]
+        W = [np.stack([r[:, c] ** 2 for c in chans], axis=1) if r.shape[0] else np.zeros((0, len(chans)))
+             for r in rho]  # (M_p, len(chans))
+        cpos = {c: j for j, c in enumerate(chans)}
+        dg = J.weighted_col_sq(W)  # (N, len(chans))
+        diag_Q = np.stack([dg[:, cpos[c]] + J.R(l).diagonal() for l, c in cols], axis=1)
+        col_l = np.array([l for l, _ in cols])
+        col_cj = np.array([cpos[c] for _, c in cols])
+
+        def apply_Q(V, which):
+            which = np.asarray(which)
+            out = np.zeros_like(V)
+            for A, A64, w in zip(J.As, J.A64, W):
+                if A.shape[0] == 0:
+                    continue
+                U = A64 @ V if A64 is not None else _matmul(A, V)
+                U *= w[:, col_cj[which]]
+                out += A64.T @ U if A64 is not None else _tmatmul(A, U)
+            for l in np.unique(col_l[which]):
+                j = np.flatnonzero(col_l[which] == l)
+                out[:, j] += J.R(int(l)) @ V[:, j]
+            return out
+
+        Bm = np.stack([B[:, l, c] for l, c in cols], axis=1)
+        X0 = np.stack([X[:, l, c] for l, c in cols], axis=1) if warm else np.zeros((n, len(cols)))
+        p0 = None if warm else np.ones((n, len(cols)), dtype=bool)
+        res = solve_nnls_pcg(apply_Q, diag_Q, precond, group, Bm, X0, passive0=p0, tol=qp_tol)
+        for k, (l, c) in enumerate(cols):
+            X[:, l, c] = res.x[:, k]
+            kk[l, c] = res.kkt_residual[k]
+        ref["applications"] += res.cg_iterations
+        ref["rounds"] += res.rounds
+        ref["steps"] += 1
+        if grams is None and res.cg_iterations > cg_refresh * res.rounds:
+            ref["stale"].update(chans)  # the albedo moved away from the reference: new Gram at the next x-step
+        timers["x"] += time.perf_counter() - t0
+        return X, kk
+
     def x_step(rho, X, chans, warm, fast=fast_gram):
-        """Exact (or damped) x for the given rho on channels ``chans``; returns (X, kkt) for all channels."""
+        """Exact (or damped) x for the given rho and the quadratic prior in use, on channels ``chans``; returns
+        (X, kkt) for all channels. One Gram matrix per channel; with per-target prior weights (edges) one
+        factorisation per (target, channel), else one per channel for all its targets."""
+        if use_pcg:
+            return x_step_pcg(rho, X, chans, warm)
         t0 = time.perf_counter()
         X = X.copy()
         kk = np.zeros((L, C))
         B = J.rhs(rho, chans)
-        cache: dict = {}
+        per_target = J.huber_on
         for c in chans:
-            Q = J.gram(rho, c, cache, fast=fast)
-            if exact:
-                p0 = X[:, :, c] > 0 if warm else None
-                res = solve_exact(Q, B[:, :, c], tol=qp_tol, passive0=p0)
-                X[:, :, c] = res.x
-                kk[:, c] = res.kkt_residual
-            else:
-                fac, _ = _chol(Q)
-                Xc = X[:, :, c]
-                Xc = np.maximum(Xc - alpha * cho_solve(fac, Q @ Xc - B[:, :, c], check_finite=False), 0.0)
-                X[:, :, c] = Xc
-                kk[:, c] = kkt_residual(Q, B[:, :, c], Xc)
+            G = J.gram(rho, c, gram_cache, fast=fast)
+            groups = [[l] for l in range(L)] if per_target else [list(range(L))]
+            for ls_ in groups:
+                Q = G + J.R_dense(ls_[0])
+                Bc = B[:, ls_, c]
+                if exact:
+                    p0 = X[:, ls_, c] > 0 if warm else None
+                    res = solve_exact(Q, Bc, tol=qp_tol, passive0=p0)
+                    X[:, ls_, c] = res.x
+                    kk[ls_, c] = res.kkt_residual
+                else:
+                    fac, _ = _chol(Q)
+                    Xc = X[:, ls_, c]
+                    Xc = np.maximum(Xc - alpha * cho_solve(fac, Q @ Xc - Bc, check_finite=False), 0.0)
+                    X[:, ls_, c] = Xc
+                    kk[ls_, c] = kkt_residual(Q, Bc, Xc)
         timers["x"] += time.perf_counter() - t0
         return X, kk
 
@@ -877,40 +1123,85 @@ def solve_joint(
         return rho
 
     def scale(rho, X, S, chans):
-        """Minimise over c > 0 the objective at (clip(c rho, rho_min, 1), x / c) per channel (in place).
+        """Minimise over c > 0 the objective F at (clip(c rho, rho_min, 1), x / c) per channel (in place).
 
-        Between the clips the data term is constant and the minimiser is closed form; beyond them (c rho_i > 1 for
-        a few pixels, which then stay at 1) the data of those pixels changes. The 1-D function is evaluated on a
-        log grid around the unclipped range, refined by golden-section search, and the best c (c = 1 included)
-        is taken, so the step never increases the objective.
+        Between the clips the data term is constant; beyond them (c rho_i > 1 for a few pixels, which then stay
+        at 1) the data of those pixels changes; the envmap prior is evaluated exactly (for the edge prior, the
+        Huber of the shared edges with this channel scaled). The 1-D function is evaluated on a log grid around
+        the unclipped range, refined by golden-section search, and the best c (c = 1 included) is taken; the
+        objective is then recomputed directly and the step undone unless it decreased, so F never increases.
+        With lp = 0 one evaluation costs O(log M): the pixels clipped at either bound are a prefix and a suffix
+        of the albedo sorted once, and their data terms are quadratics in 1/c summed by prefix sums.
         """
-        rx = J.reg_x(X)
+        t0 = time.perf_counter()
         live = [k for k in range(P) if rho[k].shape[0]]
         for c in chans:
-            if rx[c] <= 0:
+            r_all = np.concatenate([rho[k][:, c] for k in live])
+            rmax, rmin = float(r_all.max()), float(r_all.min())
+            if J.huber_on:
+                DX = (J.D @ X[:, :, c])  # (E, L)
+                others = (np.einsum("elc,elc->el", *(2 * [(J.D @ X.reshape(n, -1)).reshape(-1, L, C)]))
+                          - DX * DX)
+                xx_c = float(np.sum(X[:, :, c] ** 2))
+                xx_o = float(np.sum(X * X)) - xx_c
+                thr = J.edge_thr[None, :]
+
+                def prior_at(cs):
+                    r = np.sqrt(np.maximum(others + DX * DX / cs**2, 0.0) / C)
+                    h = np.where(r <= thr, r * r / (2 * thr), r - thr / 2)
+                    return float(J.ls * 2 * C * np.sum(J.edge_s * h.sum(axis=0)) + J.lr * (xx_o + xx_c / cs**2))
+            else:
+                rx = float(J.reg_x(X)[c])
+
+                def prior_at(cs):
+                    return rx / cs**2
+            if prior_at(1.0) <= 0:
                 continue
-            r_c = [rho[k][:, c] for k in live]
-            s_c = [S[k][:, :, c] for k in live]
-            y_c = [J.Ys[k][:, :, c] for k in live]
-            g_c = [J.Gs[k] for k in live]
-            rmax = max(float(r.max()) for r in r_c)
-            rmin = min(float(r.min()) for r in r_c)
+            if J.lp > 0:
+                r_c = [rho[k][:, c] for k in live]
+                s_c = [S[k][:, :, c] for k in live]
+                y_c = [J.Ys[k][:, :, c] for k in live]
+                g_c = [J.Gs[k] for k in live]
+
+                def data_at(cs):
+                    v = 0.0
+                    for r, sh, y, G in zip(r_c, s_c, y_c, g_c):
+                        rr = np.clip(r * cs, J.rho_min, 1.0)
+                        res = rr[:, None] * (sh / cs) - y
+                        v += float(np.sum(res * res))
+                        gr = G @ rr
+                        v += J.lp * float(gr @ gr)
+                    return v
+            else:
+                sh = np.concatenate([S[k][:, :, c] for k in live])
+                yv = np.concatenate([J.Ys[k][:, :, c] for k in live])
+                order = np.argsort(r_all, kind="stable")
+                rs = r_all[order]
+                sh, yv = sh[order], yv[order]
+                res = rs[:, None] * sh - yv
+                cum = [np.concatenate([[0.0], np.cumsum(v)]) for v in (
+                    np.einsum("ml,ml->m", res, res), np.einsum("ml,ml->m", sh, sh),
+                    np.einsum("ml,ml->m", sh, yv), np.einsum("ml,ml->m", yv, yv))]
+                e_tot = cum[0][-1]
+                m_all = rs.size
+
+                def data_at(cs):
+                    lo = int(np.searchsorted(rs, J.rho_min / cs, side="left"))  # r cs < rho_min: prefix [0, lo)
+                    hi = int(np.searchsorted(rs, 1.0 / cs, side="right"))  # r cs > 1: suffix [hi, M)
+                    hi = max(hi, lo)
+                    e, aa_, bb, yy = (cm[lo] - cm[0] for cm in cum)
+                    v = e_tot - e + (J.rho_min**2 * aa_ / cs**2 - 2 * J.rho_min * bb / cs + yy)
+                    e, aa_, bb, yy = (cm[m_all] - cm[hi] for cm in cum)
+                    return float(v - e + (aa_ / cs**2 - 2 * bb / cs + yy))
 
             def f(t):
                 cs = np.exp(t)
-                v = rx[c] / cs**2
-                for r, sh, y, G in zip(r_c, s_c, y_c, g_c):
-                    rr = np.clip(r * cs, J.rho_min, 1.0)
-                    res = rr[:, None] * (sh / cs) - y
-                    v += float(np.sum(res * res))
-                    if J.lp > 0:
-                        gr = G @ rr
-                        v += J.lp * float(gr @ gr)
-                return v
+                return data_at(cs) + prior_at(cs)
 
             t_lo, t_hi = np.log(J.rho_min / rmin), np.log(1.0 / rmax)
             rr_c = J.reg_rho([rho[k] for k in live])[c]
-            t_free = t_hi if rr_c <= 0 else float(np.clip(0.25 * np.log(rx[c] / rr_c), t_lo, t_hi))
+            rx_c = float(J.reg_x(X)[c])
+            t_free = t_hi if rr_c <= 0 else float(np.clip(0.25 * np.log(max(rx_c, 1e-300) / rr_c), t_lo, t_hi))
             ts = np.unique(np.concatenate([np.linspace(t_lo, t_hi + np.log(4.0), 24), [0.0, t_free, t_hi]]))
             vals = np.array([f(t) for t in ts])
             j = int(np.argmin(vals))
@@ -922,36 +1213,59 @@ def solve_joint(
             if best_v >= f(0.0):
                 continue
             cs = float(np.exp(best_t))
+            before = float(J.true_objective(rho, X, S).sum())
+            saved = ([rho[k][:, c].copy() for k in range(P)], [S[k][:, :, c].copy() for k in range(P)],
+                     X[:, :, c].copy())
             for k in range(P):
                 rho[k][:, c] = np.clip(rho[k][:, c] * cs, J.rho_min, 1.0)
                 S[k][:, :, c] /= cs
             X[:, :, c] /= cs
+            if not float(J.true_objective(rho, X, S).sum()) < before:  # a rounding-level gain: undo
+                for k in range(P):
+                    rho[k][:, c], S[k][:, :, c] = saved[0][k], saved[1][k]
+                X[:, :, c] = saved[2]
+        timers["scale"] += time.perf_counter() - t0
+
+    def total(rho, X, S) -> float:
+        return float(J.true_objective(rho, X, S).sum())
 
     with single_blas_thread():
-        rho = J.initial_rho()
+        rho = J.initial_rho() if rho_init is None else [
+            np.clip(np.asarray(r, dtype=np.float64).reshape(A.shape[0], C), J.rho_min, 1.0).copy()
+            for r, A in zip(rho_init, J.As)]
         X = np.zeros((n, L, C))
         S = [np.zeros((A.shape[0], L, C)) for A in J.As]
-        obj = J.objective(rho, X, S)
-        step_hist = [float(obj.sum())]
+        step_hist = [total(rho, X, S)]
+        per_channel = not (prior == "edges")  # the shared edges couple the channels: stop on the total
         active = np.ones(C, dtype=bool)
         aa = [_Anderson(anderson_depth) for _ in range(C)]
-        stats = dict(accepted=0, rejected=0, float64_redo=0, gn_accepted=0, gn_rejected=0)
-        # sweep 0: x for the initial albedo
+        stats = dict(accepted=0, rejected=0, float64_redo=0, gn_accepted=0, gn_rejected=0, mm_steps=0)
+        # sweep 0: x for the initial albedo (quadratic prior); the edge prior takes its scale from this x
         X, kkt_x = x_step(rho, X, np.arange(C), warm=False)
         S = J.shading(X)
-        obj = J.objective(rho, X, S)
-        step_hist.append(float(obj.sum()))
-        hist = [obj.copy()]
-        gn = _SubspaceGN(J, gn_rank, fast_gram) if (exact and gn_rank and gn_rank > 0) else None
-        best = (float(obj.sum()), X.copy(), [r.copy() for r in rho], [s.copy() for s in S], obj.copy(),
+        if prior == "edges":
+            J.start_huber(X)  # F is the Huber objective from here: the histories start at this point
+            if J.huber_on:
+                step_hist = []
+        obj_t = J.true_objective(rho, X, S)
+        step_hist.append(float(obj_t.sum()))
+        hist = [obj_t.copy()]
+        gn = None
+        if exact and gn_rank and gn_rank > 0:
+            # its basis: the top eigenvectors of the first sweep's Gram matrix (the data's strong directions)
+            K0 = ref["G"].get(0) if use_pcg else J.gram(rho, 0, gram_cache, fast=fast_gram)  # cached
+            gn = _SubspaceGN(J, gn_rank, fast_gram, K=K0)
+        best = (float(obj_t.sum()), X.copy(), [r.copy() for r in rho], [s.copy() for s in S], obj_t.copy(),
                 kkt_x.copy(), 0)
         diverged = False
         message = ""
         iters = 0
         for it in range(1, max_iter + 1):
+            gram_cache.clear()
             chans = np.flatnonzero(active)
-            prev = obj.copy()
-            # plain block steps: rho, then scale (x follows below)
+            prev = obj_t.copy()
+            # plain block steps: rho, then scale (x follows below); per-channel decisions compare the objective
+            # with the quadratic prior in use (for edges: the majoriser at the tangent point, so F decreases too)
             rho_p = rho_step(rho, S, chans)
             obj_r = J.objective(rho_p, X, S)
             Xs, Ss = X.copy(), [s.copy() for s in S]
@@ -989,13 +1303,12 @@ def solve_joint(
                     stats["gn_rejected"] += len(remaining)
                     todo_ch = improved
                 timers["gn"] += time.perf_counter() - t0
-            step_hist.append(float(obj_r.sum()))
+            step_hist.append(total(rho_p, Xs, Ss))
             if exact and scale_step:
                 scale(rho_p, Xs, Ss, chans)
-                obj_s = J.objective(rho_p, Xs, Ss)
-                step_hist.append(float(obj_s.sum()))
-            else:
-                obj_s = obj_r
+                step_hist.append(total(rho_p, Xs, Ss))
+            J.tangent(Xs)
+            obj_s = J.objective(rho_p, Xs, Ss)
             plain = list(chans)
             new_X, new_kkt = Xs, kkt_x.copy()
             new_rho = [r.copy() for r in rho_p]
@@ -1025,7 +1338,7 @@ def solve_joint(
                             stats["rejected"] += 1
             if plain:
                 Xp, kp = x_step(new_rho, Xs, np.array(plain), warm=True)
-                if fast_gram and exact:
+                if fast_gram and exact and not use_pcg:
                     # the float32 Gram could in principle cost a hair of objective: check, redo in float64
                     obj_p = J.objective(new_rho, Xp, J.shading(Xp))
                     redo = [c for c in plain if obj_p[c] > obj_s[c]]
@@ -1038,38 +1351,67 @@ def solve_joint(
                     new_X[:, :, c] = Xp[:, :, c]
                     new_kkt[:, c] = kp[:, c]
             rho, X, kkt_x = new_rho, new_X, new_kkt
+            if J.huber_on and exact:
+                # more majorise-minimise x-steps on this sweep's Gram matrices (factorisations only): each one
+                # minimises the majoriser at the current point exactly, so F decreases
+                step_hist.append(total(rho, X, J.shading(X)))
+                for _ in range(edge_steps - 1):
+                    J.tangent(X)
+                    Xm, km = x_step(rho, X, chans, warm=True)
+                    Sm = J.shading(Xm)
+                    fm, fx = total(rho, Xm, Sm), step_hist[-1]
+                    stats["mm_steps"] += 1
+                    if not fm <= fx:  # float32 Gram rounding: keep the better point
+                        break
+                    X, kkt_x = Xm, km
+                    step_hist.append(fm)
+                    if fx - fm <= 0.1 * tol * fx:
+                        break
+            J.tangent(X)
             S = J.shading(X)
-            obj = J.objective(rho, X, S)
-            total = float(obj.sum())
-            step_hist.append(total)
-            hist.append(obj.copy())
+            obj_t = J.true_objective(rho, X, S)
+            tot = float(obj_t.sum())
+            step_hist.append(tot)
+            hist.append(obj_t.copy())
             iters = it
             # ---- divergence guard
-            if np.isfinite(total) and total < best[0]:
-                best = (total, X.copy(), [r.copy() for r in rho], [s.copy() for s in S], obj.copy(),
+            if np.isfinite(tot) and tot < best[0]:
+                best = (tot, X.copy(), [r.copy() for r in rho], [s.copy() for s in S], obj_t.copy(),
                         kkt_x.copy(), it)
-            if not np.isfinite(total) or total > diverge_factor * best[0]:
-                why = ("non-finite objective" if not np.isfinite(total) else
-                       f"objective {total:.6g} > {diverge_factor:g} x best {best[0]:.6g}")
+            if not np.isfinite(tot) or tot > diverge_factor * best[0]:
+                why = ("non-finite objective" if not np.isfinite(tot) else
+                       f"objective {tot:.6g} > {diverge_factor:g} x best {best[0]:.6g}")
                 diverged = True
                 message = (f"diverged at sweep {it} ({why}); returning the last good estimate, from sweep "
                            f"{best[6]} (objective {best[0]:.6g})")
                 break
-            dec = (prev - obj) / np.where(prev > 0, prev, 1.0)
-            done = np.abs(dec) < tol if not exact else dec < tol
+            if per_channel:
+                dec = (prev - obj_t) / np.where(prev > 0, prev, 1.0)
+                done = np.abs(dec) < tol if not exact else dec < tol
+            else:
+                p_tot = float(prev.sum())
+                dec_t = (p_tot - tot) / (p_tot if p_tot > 0 else 1.0)
+                done = np.full(C, abs(dec_t) < tol if not exact else dec_t < tol)
             active &= ~done
             if not active.any():
                 break
         converged = (not diverged) and not active.any()
         if diverged:
-            _, X, rho, S, obj, kkt_x, _ = best
-        elif exact and fast_gram:
-            # final x-step with float64 Gram matrices: x exactly optimal (KKT ~ qp_tol) for the final rho
-            X, kkt_x = x_step(rho, X, np.arange(C), warm=True, fast=False)
-            S = J.shading(X)
-            obj = J.objective(rho, X, S)
-            step_hist.append(float(obj.sum()))
-            hist[-1] = obj.copy()
+            _, X, rho, S, obj_t, kkt_x, _ = best
+        elif exact and (fast_gram or use_pcg or J.huber_on):
+            # final x-step (for edges: at the final tangent point), polished against the exact float64 operator with
+            # the last sweep's float32 Gram matrices (formed at this albedo) as the preconditioner: x exactly optimal
+            # (KKT ~ qp_tol) for the final rho and the quadratic prior in use
+            J.tangent(X)
+            pre = {c: J.gram(rho, c, gram_cache, fast=fast_gram) for c in range(C)}  # cached: no new Gram
+            Xf, kf = x_step_pcg(rho, X, np.arange(C), warm=True, grams=pre)
+            Sf = J.shading(Xf)
+            ff = total(rho, Xf, Sf)
+            if ff <= step_hist[-1] * (1 + 1e-12):
+                X, kkt_x, S = Xf, kf, Sf
+                obj_t = J.true_objective(rho, X, S)
+                step_hist.append(float(obj_t.sum()))
+                hist[-1] = obj_t.copy()
         if not message:
             message = (f"converged after {iters} sweeps (relative decrease < {tol:g})" if converged else
                        f"stopped at max_iter = {max_iter} sweeps before the relative decrease fell below {tol:g}")
@@ -1079,7 +1421,7 @@ def solve_joint(
     return JointResult(
         x=X,
         rho=rho,
-        objective=obj,
+        objective=obj_t,
         history=hist_arr.sum(axis=1),
         history_channels=hist_arr,
         step_history=step_hist,
@@ -1099,7 +1441,12 @@ def solve_joint(
             gram_seconds=J.t_gram, grams=J.grams, x_step_seconds=timers["x"], rho_step_seconds=timers["rho"],
             anderson_accepted=stats["accepted"], anderson_rejected=stats["rejected"],
             float64_redo=stats["float64_redo"], gn_accepted=stats["gn_accepted"], gn_rejected=stats["gn_rejected"],
-            gn_seconds=timers["gn"], gn_rank=0 if gn is None else gn.k,
+            gn_seconds=timers["gn"], gn_rank=0 if gn is None else gn.k, scale_seconds=timers["scale"],
+            xsolver=xsolver if exact else "gram", x_steps=ref["steps"], reference_grams=ref["refreshes"],
+            operator_applications=ref["applications"], pivot_rounds=ref["rounds"],
+            prior=prior if J.huber_on or prior == "smooth" else "smooth (edges: no edge scale)",
+            edge_scale=J.edge_s.tolist(), edge_eps=J.edge_eps_rel, mm_steps=stats["mm_steps"],
+            edges_above_threshold=(float(np.mean(J.edge_norms(X) > J.edge_thr[:, None])) if J.huber_on else 0.0),
         ),
     )
 
@@ -1114,13 +1461,25 @@ def joint_objective(
     lr: float = DEFAULT_LR_REL,
     lp: float = 0.0,
     relative: bool = True,
+    prior: str = "smooth",
+    edge_scale: Sequence[float] | None = None,
+    edge_eps: float = 0.05,
 ) -> np.ndarray:
-    """The objective per channel (C,) of :func:`solve_joint` at (x (N, L, C), rho list of (M_p, C))."""
-    J = _Joint(blocks, grid, texel_index, ls, lr, lp, relative, DEFAULT_RHO_MIN)
+    """The objective per channel (C,) of :func:`solve_joint` at (x (N, L, C), rho list of (M_p, C)).
+
+    prior="edges" needs the Huber scale per target that the solve fixed (``JointResult.info["edge_scale"]``); the
+    shared edge term is split equally between the channels (as :attr:`JointResult.objective`)."""
+    J = _Joint(blocks, grid, texel_index, ls, lr, lp, relative, DEFAULT_RHO_MIN, prior=prior, edge_eps=edge_eps)
     X = np.asarray(x, dtype=np.float64).reshape(J.n, J.L, J.C)
     rho = [np.asarray(r, dtype=np.float64).reshape(-1, J.C) for r in rho]
+    if prior == "edges":
+        if edge_scale is None:
+            raise ValueError("prior='edges' needs edge_scale (JointResult.info['edge_scale'])")
+        J.edge_s = np.asarray(edge_scale, dtype=np.float64).reshape(J.L)
+        J.edge_thr = J.edge_eps_rel * J.edge_s
+        J.huber_on = bool(np.all(J.edge_s > 0))
     with single_blas_thread():
-        return J.objective(rho, X, J.shading(X))
+        return J.true_objective(rho, X, J.shading(X))
 
 
 # ------------------------------------------------------------------------------------------------ evaluation

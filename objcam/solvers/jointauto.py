@@ -35,10 +35,15 @@ class JointSetup:
 
     ls: relative smoothness, or None to choose it by ``rule`` ("gcv", "discrepancy", "lcurve"; "off" uses ls0).
     lr, lp: relative ridge and albedo weights (objcam.solvers.joint conventions). ls0: ls of the provisional
-    solve. method: "exact" or "paper" (alpha: its envmap damping). tol, max_iter: the final solve's stopping rule.
+    solve. method: "exact" or "paper" (alpha: its envmap damping). prior: "edges" (Huber; edge_eps its threshold,
+    edge_steps its majorise-minimise x-steps per sweep) or "smooth" (quadratic); the paper's method is always
+    smooth. tol, max_iter: the final solve's stopping rule.
     """
 
     method: str = "exact"
+    prior: str = "edges"
+    edge_eps: float = 0.05
+    edge_steps: int = 2
     ls: float | None = None
     lr: float = 1e-4
     lp: float = 0.0
@@ -58,14 +63,19 @@ def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel
     sigma: absolute noise standard deviations of one pixel value (the discrepancy rule uses their median).
     Returns the final :class:`JointResult` and a dict on the automatic choice (None when ls was given).
     """
-    kw: dict[str, Any] = dict(lr=setup.lr, lp=setup.lp, method=setup.method, max_iter=setup.max_iter)
+    kw: dict[str, Any] = dict(lr=setup.lr, lp=setup.lp, method=setup.method, max_iter=setup.max_iter,
+                              prior=setup.prior if setup.method == "exact" else "smooth")
     if setup.method == "paper":
         kw["alpha"] = setup.alpha
+    else:
+        kw.update(edge_eps=setup.edge_eps, edge_steps=setup.edge_steps)
     if setup.ls is not None or setup.rule == "off":
         ls = setup.ls if setup.ls is not None else setup.ls0
         return solve_joint(blocks, grid, texel_index, ls=ls, tol=setup.tol, **kw), None
     t0 = time.perf_counter()
-    first = solve_joint(blocks, grid, texel_index, ls=setup.ls0, tol=max(setup.tol, 1e-4), **kw)
+    # only its albedo is used: the quadratic prior is enough (and cheaper)
+    first = solve_joint(blocks, grid, texel_index, ls=setup.ls0, tol=max(setup.tol, 1e-3),
+                        **{**kw, "prior": "smooth"})
     if first.diverged:
         return first, {"rule": setup.rule, "note": "the provisional solve diverged"}
     t_first = time.perf_counter() - t0
