@@ -3,8 +3,11 @@
 Each view contributes a signed distance to its silhouette's boundary (pixels, from distance transforms: positive
 inside the object mask), converted to metres at the voxel's depth (x depth / fx). The field at a point is the
 (k+1)-th smallest of these over the views that frame it (k = ``outlier_views``: a voxel survives being outside
-k silhouettes, so one bad mask cannot dig a tunnel). Its zero level set is the visual hull, located to a fraction
-of a voxel (``objcam.geometry.surface`` interpolates it), so voxels need not be tiny.
+k silhouettes, so k bad masks cannot dig a tunnel, at the price of a hull widened wherever fewer than k + 1 views
+see a concavity; objcam.geometry.hull carves with k = 0 once the masks' doubtful pixels are marked). A view may
+carry an outline offset image (objcam.geometry.outline) that is subtracted from its distances. The field's zero
+level set is the visual hull, located to a fraction of a voxel (``objcam.geometry.surface`` interpolates it), so
+voxels need not be tiny.
 
 Coarse to fine: the field is evaluated on a coarse grid over the whole volume, the volume is cropped to the
 cells the object may occupy, and each level halves the voxel and re-evaluates only the cells within a few
@@ -28,7 +31,7 @@ class CarveParams(BaseModel):
     voxel_size: float = Field(0.5e-3, gt=0, description="finest voxel side, metres")
     coarse_cells: int = Field(40, ge=8, le=512, description="cells along the volume's longest side at the "
                               "coarsest level")
-    outlier_views: int = Field(1, ge=0, description="a point survives being outside this many silhouettes")
+    outlier_views: int = Field(0, ge=0, description="a point survives being outside this many silhouettes")
     base_height: float = Field(3e-3, ge=0, description="below this height (metres) the hull's cross-section "
                                "at this height is extruded down to z = 0")
     min_framed: float = Field(0.5, gt=0, le=1, description="a point framed by fewer than this fraction of the "
@@ -57,14 +60,13 @@ class CarvedField:
 class _ViewField:
     """One view's signed distance image (pixels) and camera, sampled at world points."""
 
-    def __init__(self, mask: np.ndarray, known: np.ndarray | None, cam):
-        import cv2
+    def __init__(self, mask: np.ndarray, known: np.ndarray | None, cam, offset: np.ndarray | None = None):
+        from objcam.geometry.maskfield import signed_distance
 
-        m = mask.astype(np.uint8)
         self.unknown = None if known is None else (~known).astype(np.uint8)
-        d_in = cv2.distanceTransform(m, cv2.DIST_L2, 5)
-        d_out = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
-        self.sd = np.where(m > 0, d_in - 0.5, 0.5 - d_out).astype(np.float32)
+        self.sd = signed_distance(mask)
+        if offset is not None:  # the outline measured off the image (objcam.geometry.outline)
+            self.sd -= offset
         cw = np.linalg.inv(cam.matrix)
         self.r, self.t = cw[:3, :3], cw[:3, 3]
         self.cam = cam
@@ -125,12 +127,16 @@ def carve(masks: list, cams: list, box_lo: np.ndarray, box_hi: np.ndarray,
           params: CarveParams | None = None) -> CarvedField:
     """The carved signed field inside the box [box_lo, box_hi] (metres; box_lo[2] is lowered to below z = 0).
 
-    masks: per view an (H, W) bool mask (True = object) or a pair (mask, known) where ``known`` (H, W) bool says
-    where the mask carries evidence (elsewhere the view is treated as not framing the point).
+    masks: per view an (H, W) bool mask (True = object), or a tuple (mask, known[, offset]) where ``known`` (H, W)
+    bool says where the mask carries evidence (elsewhere the view is treated as not framing the point) and
+    ``offset`` (H, W) float32 pixels how far the mask's outline lies outside the object's (objcam.geometry.outline).
     cams: the views' cameras (objcam Camera).
     """
     params = params or CarveParams()
-    fields = [_ViewField(*(m if isinstance(m, tuple) else (m, None)), c) for m, c in zip(masks, cams)]
+    fields = []
+    for m, c in zip(masks, cams):
+        m = m if isinstance(m, tuple) else (m,)
+        fields.append(_ViewField(m[0], m[1] if len(m) > 1 else None, c, m[2] if len(m) > 2 else None))
     k = params.outlier_views
     mf = max(1, int(np.ceil(params.min_framed * len(fields))))
     lo = np.asarray(box_lo, float).copy()

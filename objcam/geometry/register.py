@@ -9,6 +9,9 @@ show it, by aligning it to the carved visual hull.
 3. ICP, point to plane, from the model's surface samples to the hull's (hull normals), trimmed: the hull bridges
    the object's concavities, so the model points farthest from it are left out of each step.
 4. Resting: the model is lowered or raised so its lowest point is on z = 0 (the world frame's support).
+5. Silhouettes (objcam.geometry.silfit, :func:`with_silhouette_fit`): the hull is biased outward in the object's
+   concavities and wherever a mask was generous, so the pose is refined against the views' silhouettes themselves
+   (1.05 mm -> ~0.3 mm mean vertex error on the bench).
 """
 
 from __future__ import annotations
@@ -18,7 +21,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from objcam.errors import InputError
 from objcam.geometry.chamfer import sample_surface
+from objcam.geometry.silfit import SilhouetteFit, SilhouetteFitParams
 from objcam.scene import MeshData
+from objcam.threads import single_blas_thread
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "inch": 0.0254}
 
@@ -32,6 +37,9 @@ class RegisterParams(BaseModel):
     trim: float = Field(0.7, gt=0.1, le=1, description="fraction of closest pairs used by each ICP step")
     max_size_ratio: float = Field(1.6, gt=1, description="largest hull/model size ratio accepted for a unit")
     max_residual_mm: float = Field(5.0, gt=0, description="refuse a registration whose trimmed RMS exceeds this")
+    min_silhouette_agreement: float = Field(0.6, ge=0, le=1, description="refuse a registration whose outline agrees "
+                                          "with the views' silhouettes at fewer of its rim points than this fraction")
+    silhouette_fit: SilhouetteFitParams = SilhouetteFitParams()
 
 
 class Registration(BaseModel):
@@ -47,6 +55,7 @@ class Registration(BaseModel):
     mean_mm: float  # trimmed mean point-to-surface distance, model to hull
     lift_mm: float  # vertical shift applied to rest the model on z = 0
     iterations: int
+    silhouette: SilhouetteFit | None = None  # the refinement against the views' silhouettes, when run
 
 
 def detect_unit(model: MeshData, hull: MeshData, max_ratio: float, path=None) -> tuple[str, float]:
@@ -147,10 +156,11 @@ def register(model: MeshData, hull: MeshData, params: RegisterParams | None = No
             cands.append((score, up_name, yaw, r, t))
     cands.sort(key=lambda c: c[0])
     best = None
-    for score, up_name, yaw, r, t in cands[: params.starts]:
-        r2, t2, rms, mean = _icp(src, dst_tree, dst, dst_n, r, t, params.iterations, params.trim)
-        if best is None or mean < best[3]:
-            best = (r2, t2, rms, mean, up_name, yaw)
+    with single_blas_thread():  # small solves: BLAS threads only contend (objcam.threads)
+        for score, up_name, yaw, r, t in cands[: params.starts]:
+            r2, t2, rms, mean = _icp(src, dst_tree, dst, dst_n, r, t, params.iterations, params.trim)
+            if best is None or mean < best[3]:
+                best = (r2, t2, rms, mean, up_name, yaw)
     r, t, rms, mean, up_name, yaw = best
     lift = -float((m.vertices.astype(np.float64) @ r.T + t)[:, 2].min())
     t = t + np.array([0, 0, lift])
@@ -163,6 +173,18 @@ def register(model: MeshData, hull: MeshData, params: RegisterParams | None = No
     return Registration(world_from_model=w.tolist(), unit=unit, scale=scale, up_axis=up_name,
                         initial_yaw_deg=float(yaw), rms_mm=rms * 1e3, mean_mm=mean * 1e3, lift_mm=lift * 1e3,
                         iterations=params.iterations)
+
+
+def with_silhouette_fit(reg: Registration, fit: SilhouetteFit, min_agreement: float, path=None) -> Registration:
+    """``reg`` corrected by ``fit`` (found for the model placed by ``reg``); refused (InputError) when the model's
+    outline agrees with too few silhouette points: not the photographed object, or a pose far from any plausible
+    one."""
+    if fit.agree_fraction < min_agreement:
+        raise InputError(f"the object mesh's outline does not match the photographed object's silhouettes (only "
+                         f"{100 * fit.agree_fraction:.0f}% of it lies on them)", path,
+                         "give the mesh of the object in the photos")
+    w = np.asarray(fit.world_from_world) @ np.asarray(reg.world_from_model)
+    return reg.model_copy(update={"world_from_model": w.tolist(), "silhouette": fit})
 
 
 def apply(model: MeshData, reg: Registration) -> MeshData:
