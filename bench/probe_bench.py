@@ -9,8 +9,12 @@ unwrapped, area-averaged to 32 x 64. Against the rendered envmap (box texels, ar
 - relative RMSE over the probe's valid texels (objcam.metrics.relative_rmse: RMSE / mean of truth), and without
   the 3 x 3 texels around the brightest one (what a sun's few pixels do to a per-texel metric);
 - brightest-source direction error (objcam.metrics.brightest_angle_deg);
-- ball centre error (mm) of the plane-constrained silhouette fit;
+- ball centre error (mm) of the plane-constrained silhouette fit, and of its edge fit alone (before the rim
+  model, objcam.probe.rim), with whether the contact arc was fitted (objcam.probe.fit, step 3);
 - the valid fraction of the sphere and the stage's wall time (the render's separately).
+
+``--plane-albedo A`` renders the support (a diffuse plane z = 0, the ball resting on it, its contact shadow):
+the ball then sees the plane below its horizon, so the map is scored over the upper hemisphere only.
 
 Targets (issue 5): relative RMSE <= 0.05, direction <= 2 deg, centre <= 0.5 mm.
 """
@@ -45,7 +49,8 @@ camera = "photos/ball.json"
 """
 
 
-def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_centre: bool = False) -> dict:
+def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_centre: bool = False,
+        plane_albedo: float | None = None) -> dict:
     from objcam.envmap import EnvGrid, area_downsample
     from objcam.image_io import read_exr
     from objcam.metrics import brightest_angle_deg, luminance, relative_rmse
@@ -56,7 +61,7 @@ def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_
 
     t0 = time.perf_counter()
     r = render_probe(env, radius=R, size=size, ball_px=ball_px, spp=spp, seed=seed, elevation_deg=25.0,
-                     azimuth_deg=30.0, offset_px=(0.06 * size, -0.04 * size))
+                     azimuth_deg=30.0, offset_px=(0.06 * size, -0.04 * size), plane_albedo=plane_albedo)
     b = make_bracket(r.clean, seed=seed + 1)
     t_render = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="probe_bench_") as tmp:
@@ -64,7 +69,7 @@ def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_
         cap = root / "capture"
         (cap / "photos").mkdir(parents=True)
         toml = TOML.format(diameter=2 * R)
-        if known_centre:  # e.g. from the board's pose: the stage uses it and only measures the edges against it
+        if known_centre:  # e.g. from the board's pose: the stage uses it (and reports where its own fit lands)
             toml += "centre = [%r, %r, %r]\n" % tuple(float(x) for x in r.centre)
         (cap / "capture.toml").write_text(toml)
         r.camera.save(cap / "photos" / "ball.json")
@@ -79,33 +84,45 @@ def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_
         h = params.env_height
         est = read_exr(out / "ball" / f"envmap_gt_{h}.exr").astype(np.float64)
         valid = read_uint8(out / "ball" / f"valid_{h}.png") > 127
+    if plane_albedo is not None:  # below the horizon the ball sees the plane, not the envmap
+        valid[h // 2:] = False
     truth = area_downsample(r.envmap.astype(np.float64), h)
     lum = luminance(truth)
     i, j = np.unravel_index(np.argmax(np.where(valid, lum, 0)), lum.shape)
     rest = valid.copy()
     rest[max(i - 1, 0):i + 2, [(j + k) % (2 * h) for k in (-1, 0, 1)]] = False
     w = EnvGrid(h).solid_angles()
-    return {"env": env, "mode": "known centre" if known_centre else "plane fit",
+    edge = rec["fit"].get("edge_centre_world")
+    mode = "known centre" if known_centre else "plane fit"
+    if plane_albedo is not None:
+        mode += f", on a plane ({plane_albedo:g})"
+    return {"env": env, "mode": mode,
             "settings": ", ".join(f"{k}={v}" for k, v in params.model_dump(exclude_defaults=True).items()) or "defaults",
             "size": size, "ball_px": ball_px, "spp": spp, "frames": len(b.times),
             "fine_height": rec["fine"]["height"],
             "relative_rmse": relative_rmse(est, truth, valid), "relative_rmse_no_peak": relative_rmse(est, truth, rest),
             "angle_deg": brightest_angle_deg(est, truth, valid),
             "centre_mm": 1e3 * float(np.linalg.norm(np.array(rec["fit"]["centre_world"]) - r.centre)),
+            "edge_centre_mm": None if edge is None else 1e3 * float(np.linalg.norm(np.array(edge) - r.centre)),
+            "contact_arc": rec["fit"].get("contact_arc", "n/a"),
+            "rim_used": bool((rec["fit"].get("rim") or {}).get("used", False)),
             "valid_fraction": float((w * valid).sum() / w.sum()), "stage_s": t_stage, "render_s": t_render,
             "stage_steps_s": rec["seconds"], "load": load}
 
 
 def table(rows: list[dict]) -> str:
     out = ["| HDRI | centre | settings | image / ball (px) | spp | fine grid | relative RMSE | without the peak's 3x3 "
-           "| brightest angle (deg) | centre error (mm) | valid sphere | stage (s) | load |",
-           "|---|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+           "| brightest angle (deg) | centre error (mm) | edge fit alone (mm) | contact arc | valid sphere | stage (s) "
+           "| load |",
+           "|---|---|---|---|---:|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
     for r in rows:
         ok = all(r[k] <= v for k, v in TARGETS.items())
-        out.append(f"| {r['env']} | {r['mode']} | {r['settings']} | {r['size']} / {r['ball_px']:.0f} | {r['spp']} | {r['fine_height']} x "
-                   f"{2 * r['fine_height']} | {r['relative_rmse']:.4f} | {r['relative_rmse_no_peak']:.4f} | "
-                   f"{r['angle_deg']:.2f} | {r['centre_mm']:.3f} | {100 * r['valid_fraction']:.1f}% | "
-                   f"{r['stage_s']:.1f} | {r['load']:.1f} |" + ("" if ok else " (misses a target)"))
+        edge = "-" if r.get("edge_centre_mm") is None else f"{r['edge_centre_mm']:.3f}"
+        out.append(f"| {r['env']} | {r['mode']} | {r['settings']} | {r['size']} / {r['ball_px']:.0f} | {r['spp']} | "
+                   f"{r['fine_height']} x {2 * r['fine_height']} | {r['relative_rmse']:.4f} | "
+                   f"{r['relative_rmse_no_peak']:.4f} | {r['angle_deg']:.2f} | {r['centre_mm']:.3f} | {edge} | "
+                   f"{r.get('contact_arc', 'n/a')} | {100 * r['valid_fraction']:.1f}% | {r['stage_s']:.1f} | "
+                   f"{r['load']:.1f} |" + ("" if ok else " (misses a target)"))
     return "\n".join(out)
 
 
@@ -121,17 +138,20 @@ def main(argv=None) -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="probe stage param")
     ap.add_argument("--known-centre", action="store_true", help="give the manifest the true centre (as a board "
                     "pose would) instead of fitting it on the plane")
+    ap.add_argument("--plane-albedo", type=float, help="render the support plane (this albedo) under the ball; "
+                    "the map is then scored over the upper hemisphere")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
     a = ap.parse_args(argv)
     params = Params(**{k: json.loads(v) if v[:1] in "0123456789-[{tfn" else v
                        for k, v in (s.split("=", 1) for s in a.set)})
     rows = []
     for env in a.envs:
-        rows.append(one(env, a.size, a.ball_px, a.spp, a.seed, params, a.known_centre))
+        rows.append(one(env, a.size, a.ball_px, a.spp, a.seed, params, a.known_centre, a.plane_albedo))
         r = rows[-1]
+        edge = r["edge_centre_mm"] if r["edge_centre_mm"] is not None else float("nan")
         print(f"{env}: relative RMSE {r['relative_rmse']:.4f}, angle {r['angle_deg']:.2f} deg, centre "
-              f"{r['centre_mm']:.3f} mm, stage {r['stage_s']:.1f} s {r['stage_steps_s']}, render {r['render_s']:.1f} s",
-              flush=True)
+              f"{r['centre_mm']:.3f} mm (edge fit {edge:.3f}), stage {r['stage_s']:.1f} s {r['stage_steps_s']}, "
+              f"render {r['render_s']:.1f} s", flush=True)
     print()
     print(table(rows))
     if a.json:

@@ -4,7 +4,9 @@ stage's contract, and :func:`objcam.probe.truth.probe_truth` (evaluate's fallbac
 Renders are small (courtyard 384 px with the ball 300 px across; sunrise 256 px, ball 150 px; 8 spp), so the
 per-texel error is the pixel footprint's blur (one pixel spans ~0.8 deg at the ball's centre against 5.6 deg
 texels); the bounds below are what this size meets with margin (bench/probe_bench.py measures the issue's
-targets at a realistic size).
+targets at a realistic size). Bad inputs: no camera, no merged image, a camera of another size, a bracket
+saturated everywhere or exposed nowhere (errors naming the frame), a dim one (a warning naming it), no ball in
+view (an error naming the longest frame); objcam.probe's own tests cover two balls and a ball cut by the edge.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from objcam.image_io import read_exr
 from objcam.metrics import brightest_angle_deg, brightest_direction, luminance, relative_rmse
 from objcam.pipeline.stage import StageInputs
 from objcam.probe.artifact import read_uint8
+from objcam.probe.exposure import dim_warning
+from objcam.probe.recover import ball_mask
 from objcam.probe.synth import make_bracket, render_probe, write_ingest_probe
 from objcam.probe.truth import probe_truth
 from objcam.stages import probe as stage
@@ -111,7 +115,8 @@ def test_stage_recovers_the_envmap(courtyard, courtyard_out):
     r, b = courtyard
     folder = courtyard_out / "ball"
     rec = json.loads((folder / "probe.json").read_text())
-    assert np.linalg.norm(np.array(rec["fit"]["centre_world"]) - r.centre) < 0.5e-3  # measured 0.06 mm
+    assert np.linalg.norm(np.array(rec["fit"]["centre_world"]) - r.centre) < 0.5e-3  # measured 0.05 mm
+    assert rec["fit"]["contact_arc"] == "fitted"  # a floating ball: no contact shadow, the whole rim fitted
     assert rec["fit"]["mode"] == "plane" and rec["fit"]["centre_world"][2] == pytest.approx(R)
     assert rec["camera"]["source"] == "manifest" and rec["reflectance"]["source"].startswith("default")
     assert not rec["saturation"]["lower_bound"] and not rec["warnings"]
@@ -128,8 +133,8 @@ def test_stage_recovers_the_envmap(courtyard, courtyard_out):
     assert (w * valid).sum() / w.sum() > 0.85  # blind spot + camera cone ~4 % of the sphere
     truth = _truth32(r)
     err = relative_rmse(est, truth, valid)
-    assert err < 0.15, err  # measured 0.11 (0.02-0.05 at 1400 px, bench/probe_bench.py)
-    assert brightest_angle_deg(est, truth, valid) < 2.0  # measured 0.08 deg
+    assert err < 0.15, err  # measured 0.09 (0.02-0.04 at 1400 px, bench/probe_bench.py)
+    assert brightest_angle_deg(est, truth, valid) < 2.0  # measured 0.06 deg
     # the camera's own reflection is masked: the texel towards the camera is invalid
     to_cam = r.camera.centre - r.centre
     row, col = EnvGrid(32).texel_of(to_cam / np.linalg.norm(to_cam))
@@ -145,6 +150,8 @@ def test_known_centre_is_used_and_checked(courtyard, courtyard_out):
     rec = json.loads((courtyard_out / "known" / "probe.json").read_text())
     assert rec["fit"]["mode"] == "known" and np.allclose(rec["fit"]["centre_world"], r.centre)
     assert rec["fit"]["residual_px"] < 1.0 and abs(rec["fit"]["edge_bias_px"]) < 1.0
+    # ... and checked: a fit at its height lands next to it (no warning)
+    assert rec["fit"]["fitted_offset_mm"] < 0.3 and not rec["warnings"]  # measured 0.05 mm
     est = read_exr(courtyard_out / "known" / "envmap_gt_32.exr")
     valid = read_uint8(courtyard_out / "known" / "valid_32.png") > 127
     assert relative_rmse(est, _truth32(r), valid) < 0.15
@@ -184,12 +191,12 @@ def test_probe_truth(courtyard, courtyard_out):
     env16, valid16 = probe_truth(courtyard_out, "t0", 16)
     truth16 = area_downsample(r.envmap.astype(np.float64), 16)
     assert env16.shape == (16, 32, 3) and valid16.sum() > 0.8 * valid16.size
-    assert relative_rmse(env16, truth16, valid16) < 0.1  # measured 0.06
+    assert relative_rmse(env16, truth16, valid16) < 0.1  # measured 0.05
     # 24 rows: 512 is no multiple of 24, so the fine map goes through a common 1536-row grid
     env24, valid24 = probe_truth(courtyard_out, "t0", 24)
     assert env24.shape == (24, 48, 3)
     assert relative_rmse(env24, area_downsample(np.repeat(np.repeat(r.envmap.astype(np.float64), 3, 0), 3, 1), 24),
-                         valid24) < 0.15  # measured 0.09
+                         valid24) < 0.15  # measured 0.07
     env1, _ = probe_truth(courtyard_out, "t1", 32)  # the known-centre probe
     assert not np.array_equal(env1, env)
     assert probe_truth(courtyard_out, "nowhere", 32) is None
@@ -224,6 +231,45 @@ def test_bad_inputs(tmp_path, courtyard):
     with pytest.raises(InputError, match="saturated in every frame") as e:
         _run(tmp_path / "e", TOML_HEAD + _probe_toml("ball", "t0", "photos/cam.json"), {"ball": over})
     assert over.merge.paths[0].name in str(e.value)
+
+
+def test_bracket_exposure(tmp_path, courtyard):
+    """Ingest's merged bracket (image.exr per second, merge.json): the frames' levels are recovered from it, so a
+    bracket exposed nowhere is an error naming the longest frame, and one whose longest frame clips nowhere on a
+    dim ball is a warning naming it (the probe is still measured)."""
+    r, b = courtyard
+    for name in ("dark", "dim"):
+        (tmp_path / name / "capture" / "photos").mkdir(parents=True)
+        r.camera.save(tmp_path / name / "capture" / "photos" / "cam.json")
+    toml = TOML_HEAD + _probe_toml("ball", "t0", "photos/cam.json")
+    dark = make_bracket(r.clean, times=[t * 1e-4 for t in b.times], seed=3)
+    with pytest.raises(InputError, match="no usable signal in any frame") as e:
+        _run(tmp_path / "dark", toml, {"ball": dark})
+    assert dark.merge.paths[-1].name in str(e.value) and "add longer exposures" in str(e.value)
+    # the longest frame 6 stops short: the ball's median at 0.3 % of white, its brightest at 0.75
+    dim = make_bracket(r.clean, times=[b.times[0] / 60, b.times[0] / 240], seed=3)
+    out = _run(tmp_path / "dim", toml, {"ball": dim})
+    rec = json.loads((out / "ball" / "probe.json").read_text())
+    warn = [w for w in rec["warnings"] if "saturates nowhere" in w]
+    assert len(warn) == 1 and dim.merge.paths[-1].name in warn[0] and "add longer exposures" in warn[0]
+    # still a probe, a noisier one: measured 0.19 against 0.09 for the well exposed bracket
+    est = read_exr(out / "ball" / "envmap_gt_32.exr")
+    assert relative_rmse(est, _truth32(r), read_uint8(out / "ball" / "valid_32.png") > 127) < 0.3
+    # the well exposed bracket of the other tests has no such warning
+    assert dim_warning(b.merge, ball_mask(r.camera, r.centre, R)) is None
+
+
+def test_no_ball_names_the_frame(tmp_path, courtyard):
+    """The ball out of view: one line naming the bracket's longest frame and what to shoot."""
+    r, _ = courtyard
+    empty = render_probe("courtyard", radius=R, centre=(5.0, 5.0, R), camera=r.camera, spp=2, seed=1)
+    b = make_bracket(empty.clean, seed=2)
+    (tmp_path / "capture" / "photos").mkdir(parents=True)
+    r.camera.save(tmp_path / "capture" / "photos" / "cam.json")
+    with pytest.raises(InputError, match="no chrome ball of diameter 50 mm on the plane") as e:
+        _run(tmp_path, TOML_HEAD + _probe_toml("ball", "t0", "photos/cam.json"), {"ball": b})
+    msg = str(e.value)
+    assert "\n" not in msg and f"photos/ball/{b.merge.paths[-1].name}" in msg and "photograph the chrome ball" in msg
 
 
 def test_params():

@@ -2,7 +2,9 @@
 exposure bracket.
 
 - :mod:`objcam.probe.fit`: find the ball in the merged HDR image and fit its 3D centre to the silhouette
-  (perspective-exact cone; the plane z = 0 fixes the distance when the ball rests on it).
+  (perspective-exact cone; the plane z = 0 fixes the distance when the ball rests on it); its last step,
+  :mod:`objcam.probe.rim`, a photometric model of the rim for balls >= 300 px in radius.
+- :mod:`objcam.probe.exposure`: bracket checks (saturated everywhere, exposed nowhere, a dim longest frame).
 - :mod:`objcam.probe.unwrap` (``unwrap``; the function is not re-exported here, so the module name stays
   importable): the envmap (objcam's lat-long convention) by exact perspective reflection on a fine
   grid, reflectance-corrected, masked, area-averaged to the solve resolution.

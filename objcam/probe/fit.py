@@ -35,14 +35,35 @@ world frame, so perspective is exact.
      ball not on the plane).
    - free: the three coordinates: the depth hangs on the apparent size (4.7 mm per pixel of radius for a 5 cm
      ball spanning 150 px at 35 cm), and the detection is less reliable (see above).
-   - ``known_centre``: no fit; ``residual_px`` and ``edge_bias_px`` measure the edges against it.
+   - ``known_centre`` (e.g. the board's pose plus the radius): used as given; ``residual_px`` and
+     ``edge_bias_px`` measure the edges against it, and a fit at its height (x, y free, steps 3-4 below)
+     reports ``fitted_offset_mm``, warned about beyond ``KNOWN_TOLERANCE_MM``.
+3. Contact arc (plane mode, ``contact_arc="auto"``): the arc skipped above is measured at the fitted centre;
+   when its edges agree with the rest (``_contact_arc_agrees``: found, no offset, little spread: a floating
+   ball, or a contact shadow that leaves the edge clean) the fit is redone with the whole silhouette
+   (``"fit"``: always; ``"skip"``: never). The arc is a third of the rim at 25 deg elevation, and it is the arc
+   that balances the upper one: on the benchmark's floating balls fitting it took courtyard's edge-fit error
+   from 0.047 to 0.024 mm; resting on a rendered diffuse plane (1000 px ball) it still helped (courtyard
+   0.070 -> 0.028 mm, forest 0.055 -> 0.046 mm, edge fit).
+4. Rim model (:mod:`objcam.probe.rim`, balls of ``RIM_MIN_RADIUS_PX`` or more): a photometric model of the pixels
+   straddling the rim replaces the edge points' "first step", which a mirror ball's rim texture biases by
+   0.1-0.5 px; kept when it moves the silhouette by at most ``RIM_MAX_SHIFT_PX``. ``BallFit.edge_centre_world``
+   keeps the edge fit, ``BallFit.rim`` the record.
 
-Measured on synthetic 256 px brackets (5 cm chrome or mirror ball spanning 150 px at 35 cm; forest, sunrise,
-city, courtyard, sunset; up to 50 px off-axis; 15-45 deg elevation), refinement started 1.4 mm off, plane mode:
-floating ball (24 scenes) centre error rms 0.13 mm, max 0.26 mm (~0.8 px), residual ~0.3 px; resting on a
-rendered diffuse plane (6 scenes, contact shadow, 256 spp) rms 0.38 mm, max 0.87 mm. Free mode: rms 1.2-2.5 mm,
-max 5 mm. At 1024 px (ball 600 px): plane mode 0.01-0.11 mm (on a rendered plane), 0.02-0.03 mm floating; at
-2048 px (1200 px) 0.004-0.012 mm.
+Measured on the issue's benchmark (bench/probe_bench.py: 1400 px image, ball 1000 px, 16 spp, bracket noise,
+floating ball): centre error 0.001-0.004 mm (forest, courtyard, sunrise) against 0.010-0.047 mm for the edge
+fit with the contact arc skipped; the probe's relative RMSE follows (courtyard 0.055 -> 0.021, as with the true
+centre). Resting on a rendered plane: 0.02-0.05 mm (forest, courtyard). The rim model leans on the contact arc:
+with it skipped (``contact_arc="skip"``) the floating courtyard ball got 0.076 mm (edge fit 0.047), the others
+0.002-0.006. At 75-150 px radius the rim model did no better than the edge fit (0.05-0.08 mm against
+0.05-0.08), hence the size limit.
+
+Measured before steps 3-4 on synthetic 256 px brackets (5 cm chrome or mirror ball spanning 150 px at 35 cm;
+forest, sunrise, city, courtyard, sunset; up to 50 px off-axis; 15-45 deg elevation), refinement started 1.4 mm
+off, plane mode: floating ball (24 scenes) centre error rms 0.13 mm, max 0.26 mm (~0.8 px), residual ~0.3 px;
+resting on a rendered diffuse plane (6 scenes, contact shadow, 256 spp) rms 0.38 mm, max 0.87 mm. Free mode: rms
+1.2-2.5 mm, max 5 mm. At 1024 px (ball 600 px): plane mode 0.01-0.11 mm (on a rendered plane), 0.02-0.03 mm
+floating; at 2048 px (1200 px) 0.004-0.012 mm.
 """
 
 from __future__ import annotations
@@ -70,6 +91,12 @@ HALF_SCAN = 1.0  # pixels scanned inwards from the departure for the step's firs
 CONTACT_SKIP = 1.0  # plane mode ignores silhouette points whose background meets z = 0 this many radii from
 # the contact point
 MIN_RADIUS_PX = 30.0  # smallest apparent ball radius searched for (full-resolution pixels)
+ARC_FOUND, ARC_INLIERS, ARC_SPREAD_PX, ARC_BIAS_PX = 0.8, 0.85, 0.5, 0.25  # a contact arc this clean is fitted
+# (_contact_arc_agrees)
+RIM_MAX_SHIFT_PX = 1.0  # the rim model may move the edge fit's silhouette by at most this much
+RIM_MIN_RADIUS_PX = 300.0  # smaller balls keep the edge fit (their first pixel inside the rim spans too many
+# degrees of the environment for the rim model's one level: measured worse at 150 px, see objcam/probe/rim.py)
+KNOWN_TOLERANCE_MM = 0.5  # a known centre this far from where the photo puts the ball is warned about
 
 SHOOT_BALL = ("photograph the chrome ball whole, inside the frame with a margin, spanning >= 150 px (60 px at "
               "least), against a background that differs from its rim")
@@ -90,12 +117,19 @@ class BallFit:
     inlier_fraction: float = 0.0  # of edge points within 1.5 px of the silhouette
     mode: str = "plane"  # "plane", "free" or "known"
     warnings: list[str] = field(default_factory=list)
+    contact_arc: str = "n/a"  # plane mode: "fitted" (its edges agreed with the rest, or forced) or "skipped"
+    edge_centre_world: np.ndarray | None = None  # (3,) the edge fit's centre, before the rim model
+    rim: dict | None = None  # the rim model's refinement (objcam.probe.rim.RimFit.to_dict + "used", "shift_px")
+    fitted_offset_mm: float | None = None  # known mode: distance from the known centre to the plane-style fit
 
     def to_dict(self) -> dict:
         return {"centre_world": self.centre_world.tolist(), "radius": self.radius, "residual_px": self.residual_px,
                 "centre_px": self.centre_px.tolist(), "apparent_radius_px": self.apparent_radius_px,
                 "edge_bias_px": self.edge_bias_px, "support": self.support, "n_edges": self.n_edges,
-                "inlier_fraction": self.inlier_fraction, "mode": self.mode, "warnings": list(self.warnings)}
+                "inlier_fraction": self.inlier_fraction, "mode": self.mode, "warnings": list(self.warnings),
+                "contact_arc": self.contact_arc,
+                "edge_centre_world": None if self.edge_centre_world is None else self.edge_centre_world.tolist(),
+                "rim": self.rim, "fitted_offset_mm": self.fitted_offset_mm}
 
 
 # ------------------------------------------------------------------------------------------------ images
@@ -368,8 +402,19 @@ def log_rgb(hdr: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(hdr, 0) + max(floor, 1e-30)).astype(np.float32)
 
 
+def _contact_arc(cam: Camera, rays: np.ndarray, centre: np.ndarray, radius: float, skip: float) -> np.ndarray:
+    """(K,) bool: silhouette rays ``rays`` (K, 3) whose background is the support next to the contact point
+    (the contact shadow): they pass the ball and meet z = 0 within ``skip`` radii of the point below its
+    centre."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tp = -cam.centre[2] / rays[:, 2]
+    q = cam.centre + tp[:, None] * rays
+    return (tp > 0) & (np.hypot(q[:, 0] - centre[0], q[:, 1] - centre[1]) < skip * radius)
+
+
 def _edge_points(logc: np.ndarray, cam: Camera, centre: np.ndarray, radius: float, alpha_offset: float,
-                 window: float, skip_contact: float = 0.0) -> tuple[np.ndarray, np.ndarray, float]:
+                 window: float, skip_contact: float = 0.0,
+                 contact_only: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """Silhouette edge positions (N, 2) along the outward normals of the model silhouette, their departure
     strengths (N,) and the fraction of silhouette points inside the image.
 
@@ -400,13 +445,8 @@ def _edge_points(logc: np.ndarray, cam: Camera, centre: np.ndarray, radius: floa
              (pts[:, 1] <= h - 2 - window)
     frac = float(inside.mean())
     if skip_contact > 0:
-        # the silhouette's arc whose background is the support next to the contact point (contact shadow):
-        # rays passing the ball that meet z = 0 within skip_contact radii of it
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tp = -cam.centre[2] / rays[:, 2]
-        q = cam.centre + tp[:, None] * rays
-        near = (tp > 0) & (np.hypot(q[:, 0] - centre[0], q[:, 1] - centre[1]) < skip_contact * radius)
-        inside = inside & ~near
+        near = _contact_arc(cam, rays, centre, radius, skip_contact)
+        inside = inside & (near if contact_only else ~near)
     pts, nrm = pts[inside], nrm[inside]
     step = 0.125
     t = np.arange(-window, max(window, 1.5) + 1e-9, step)
@@ -492,9 +532,10 @@ def _refine(logc, cam: Camera, radius: float, centre0: np.ndarray, mode: str, so
         if mode == "plane":
             x0 = np.array([centre[0], centre[1]])
             sc = np.array([radius, radius])
+            z = centre[2]  # radius for a ball on the plane; a known centre's own height when checking it
 
-            def fun(p):
-                return _cone_residuals(rays, o, np.array([p[0], p[1], radius]), radius, 0.0, f)
+            def fun(p, z=z):
+                return _cone_residuals(rays, o, np.array([p[0], p[1], z]), radius, 0.0, f)
         else:
             x0 = centre.copy()
             sc = np.full(3, radius)
@@ -503,7 +544,7 @@ def _refine(logc, cam: Camera, radius: float, centre0: np.ndarray, mode: str, so
                 return _cone_residuals(rays, o, p, radius, 0.0, f)
         sol = least_squares(fun, x0, loss="soft_l1", f_scale=0.5, x_scale=sc, method="trf")
         if mode == "plane":
-            centre = np.array([sol.x[0], sol.x[1], radius])
+            centre = np.array([sol.x[0], sol.x[1], z])
         else:
             centre = sol.x.copy()
         res = fun(sol.x)
@@ -564,7 +605,8 @@ def _choose(cands: list[_Candidate], radius: float, plane: bool, source) -> _Can
 
 
 def fit_ball(hdr, camera: Camera, radius: float, known_centre=None, rests_on_plane: bool = True,
-             approx_px=None, skip_contact: float = CONTACT_SKIP, source: str | Path | None = None) -> BallFit:
+             approx_px=None, skip_contact: float = CONTACT_SKIP, source: str | Path | None = None,
+             valid: np.ndarray | None = None, use_rim: bool = True, contact_arc: str = "auto") -> BallFit:
     """Find and fit a chrome ball of ``radius`` metres in ``hdr`` (H, W, 3) linear radiance (or a
     :class:`~objcam.capture.hdr.MergeResult`) seen by ``camera``.
 
@@ -572,6 +614,10 @@ def fit_ball(hdr, camera: Camera, radius: float, known_centre=None, rests_on_pla
     rests_on_plane: the ball lies on z = 0, so its centre is at z = radius (see the module doc).
     approx_px: (u, v, r) rough image centre and apparent radius in pixels (e.g. clicked): skips the detection;
     the refinement starts from it (within ~3 px).
+    contact_arc: "auto", "fit" or "skip": the skipped arc refitted when its edges agree with the rest, always, or
+    never (see the module doc, step 3). use_rim: the rim model's refinement (step 4) for balls of
+    ``RIM_MIN_RADIUS_PX`` or more. valid: (H, W) bool, False where saturated in every frame (default: the
+    MergeResult's); the rim model leaves those pixels out.
     skip_contact: with ``rests_on_plane``, silhouette points whose background is the plane within this many
     radii of the contact point are not fitted (contact shadow; 0: fit them, e.g. for a floating ball).
     source: the file named in errors (default: the longest frame of a MergeResult).
@@ -581,6 +627,8 @@ def fit_ball(hdr, camera: Camera, radius: float, known_centre=None, rests_on_pla
 
     if hasattr(hdr, "radiance"):
         source = source or (hdr.paths[-1] if hdr.paths else None)
+        if valid is None:
+            valid = getattr(hdr, "valid", None)
         hdr = hdr.radiance
     hdr = np.asarray(hdr, np.float32)
     if hdr.shape[:2] != (camera.height, camera.width):
@@ -590,8 +638,22 @@ def fit_ball(hdr, camera: Camera, radius: float, known_centre=None, rests_on_pla
         raise ValueError("radius must be > 0")
     logc = log_rgb(hdr)
     if known_centre is not None:
-        return _refine(logc, camera, radius, np.asarray(known_centre, np.float64), "known", source,
-                       windows=(2.0,))
+        known = np.asarray(known_centre, np.float64)
+        fit = _refine(logc, camera, radius, known, "known", source, windows=(2.0,))
+        # check it against the photo: the centre the silhouette asks for at the known height
+        try:
+            check = _refine(logc, camera, radius, known, "plane", source, WINDOWS, 0.0)
+            check = _finish(hdr, valid, logc, camera, radius, check.centre_world, "plane", source, 0.0, use_rim)
+        except InputError as e:  # the known centre stays in use; say why it could not be checked
+            fit.warnings.append(f"the known centre could not be checked against the photo ({e.args[0]})")
+            return fit
+        fit.fitted_offset_mm = float(1e3 * np.linalg.norm(check.centre_world - known))
+        fit.rim = check.rim
+        if fit.fitted_offset_mm > KNOWN_TOLERANCE_MM:
+            fit.warnings.append(f"the photo puts the ball {fit.fitted_offset_mm:.1f} mm from the known centre "
+                                f"{tuple(round(float(x), 4) for x in known)} (at its height): check [[probes]] "
+                                "centre, the diameter and the camera")
+        return fit
     mode = "plane" if rests_on_plane else "free"
     if approx_px is not None:
         params = np.asarray(approx_px, np.float64)[None, :3 if not rests_on_plane else 2]
@@ -599,7 +661,9 @@ def fit_ball(hdr, camera: Camera, radius: float, known_centre=None, rests_on_pla
         if not np.all(np.isfinite(centre)):
             raise InputError(f"approx_px {tuple(approx_px)} does not meet the plane z = {radius} in front of the "
                              "camera", source, "check the pixel position and the camera")
-        return _refine(logc, camera, radius, centre, mode, source, (4.0,) + WINDOWS, skip_contact)  # no pyramid
+        fit = _refine(logc, camera, radius, centre, mode, source, (4.0,) + WINDOWS, skip_contact)  # no pyramid
+        return _finish(hdr, valid, logc, camera, radius, fit.centre_world, mode, source, skip_contact, use_rim,
+                   contact_arc)
     # detection on a shrunk copy
     s = max(1.0, min(camera.width, camera.height) / DETECT_SIZE)
     small, cam_s = _shrink(hdr[..., :3], camera, s)
@@ -624,5 +688,74 @@ def fit_ball(hdr, camera: Camera, radius: float, known_centre=None, rests_on_pla
         centre = _refine(log_rgb(img_l), cam_l, radius, centre, mode, source, WINDOWS[:3], skip_contact).centre_world
         level /= 2.0
     fit = _refine(logc, camera, radius, centre, mode, source, WINDOWS, skip_contact)
+    fit = _finish(hdr, valid, logc, camera, radius, fit.centre_world, mode, source, skip_contact, use_rim,
+                   contact_arc)
     fit.support = best.support
     return fit
+
+
+def _finish(hdr, valid, logc, cam: Camera, radius: float, centre: np.ndarray, mode: str, source,
+            skip_contact: float, use_rim: bool, contact_arc: str = "auto") -> BallFit:
+    """The last steps after the edge fit at full resolution (``centre``): in plane mode, the contact arc is
+    fitted too when its edges agree with the rest (a ball with no contact shadow: floating, or on a support
+    that does not darken next to it); then the rim model (objcam.probe.rim) from there, kept when it moves the
+    silhouette by at most ``RIM_MAX_SHIFT_PX``. Returns the fit with its edge statistics at the final centre."""
+    from objcam.probe.rim import refine_rim
+
+    skip = skip_contact if mode == "plane" else 0.0
+    arc = "n/a"
+    if skip > 0:
+        arc = "skipped"
+        if contact_arc == "fit" or (contact_arc == "auto" and _contact_arc_agrees(logc, cam, centre, radius, skip)):
+            arc = "fitted"
+            skip = 0.0
+            centre = _refine(logc, cam, radius, centre, mode, source, WINDOWS[-2:], 0.0).centre_world
+    edge_centre = centre.copy()
+    rim = None
+    r_px = _focal(cam) * np.tan(np.arcsin(min(radius / np.linalg.norm(centre - cam.centre), 1.0)))
+    if use_rim and r_px >= RIM_MIN_RADIUS_PX:
+        rf = refine_rim(hdr, valid, cam, radius, centre, plane=mode == "plane", skip_contact=skip)
+        if rf is not None:
+            shift = _silhouette_shift_px(cam, radius, centre, rf.centre)
+            used = bool(shift <= RIM_MAX_SHIFT_PX)
+            rim = dict(rf.to_dict(), used=used, shift_px=shift)
+            if used:
+                centre = rf.centre
+    fit = _refine(logc, cam, radius, centre, "known", source, windows=(1.5,), skip_contact=skip)
+    fit.mode = mode
+    fit.contact_arc = arc
+    fit.edge_centre_world = edge_centre
+    fit.rim = rim
+    return fit
+
+
+def _contact_arc_agrees(logc, cam: Camera, centre: np.ndarray, radius: float, skip: float) -> bool:
+    """Whether the silhouette's contact arc (see :func:`_contact_arc`) has clean edges that agree with the rest
+    of the silhouette at the fit made without it: edges found on >= ``ARC_FOUND`` of its points, their median
+    residual within ``ARC_BIAS_PX`` of the rest's, and >= ``ARC_INLIERS`` of them within ``ARC_SPREAD_PX`` of the
+    rest's median. Measured fractions: 0.92-1.0 for floating balls; 0.4-0.9 resting on a rendered diffuse plane
+    (refused at 300 px, accepted at 1000 px, where fitting the arc still helped, module doc step 3); an arc with
+    no edges left (a deep shadow reflected in the ball) is refused."""
+    dist = np.linalg.norm(centre - cam.centre)
+    alpha = np.arcsin(min(radius / dist, 1.0))
+    k = int(np.clip(2 * np.pi * _focal(cam) * np.tan(alpha), 64, 4096))
+    rays = silhouette_rays(centre, radius, cam.centre, 2 * np.pi * np.arange(k) / k)
+    n_arc = int(_contact_arc(cam, rays, centre, radius, skip).sum())
+    if n_arc < 8:
+        return False
+    f = _focal(cam)
+    arc, _, _ = _edge_points(logc, cam, centre, radius, 0.0, WINDOWS[-1], skip, contact_only=True)
+    rest, _, _ = _edge_points(logc, cam, centre, radius, 0.0, WINDOWS[-1], skip)
+    if len(arc) < ARC_FOUND * n_arc or len(rest) < 16:
+        return False
+    r_arc = _cone_residuals(_pixel_rays(cam, arc), cam.centre, centre, radius, 0.0, f)
+    m_rest = float(np.median(_cone_residuals(_pixel_rays(cam, rest), cam.centre, centre, radius, 0.0, f)))
+    return bool(abs(np.median(r_arc) - m_rest) <= ARC_BIAS_PX
+                and np.mean(np.abs(r_arc - m_rest) < ARC_SPREAD_PX) >= ARC_INLIERS)
+
+
+def _silhouette_shift_px(cam: Camera, radius: float, a: np.ndarray, b: np.ndarray) -> float:
+    """Largest image distance (pixels) between the silhouettes of balls at ``a`` and ``b``."""
+    pa = silhouette_px(cam, np.asarray(a)[None], radius, 64)[0]
+    pb = silhouette_px(cam, np.asarray(b)[None], radius, 64)[0]
+    return float(np.max(np.linalg.norm(pa - pb, axis=-1)))

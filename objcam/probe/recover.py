@@ -1,33 +1,27 @@
 """One call from a merged chrome-ball bracket to the ground-truth envmap: bracket checks, ball fit, unwrap, and
 the area-averaged map at the solve resolution.
 
-Bracket checks (InputError naming the frame to change):
-
-- saturated everywhere: more than half of the image, or of the ball's pixels, is saturated in every frame
-  (``MergeResult.valid`` False) -> names the SHORTEST frame: add shorter exposures;
-- exposed nowhere: more than half of the image, or of the ball's pixels, has no frame with a usable signal
-  (``frames_used == 0`` and not saturated: below the merge's ``low`` threshold in every frame) -> names the
-  LONGEST frame: add longer exposures.
-
-A few saturated pixels (the sun) are expected: they are flagged, their texels marked SATURATED, and the energy
-there is a lower bound (``ProbeResult.lower_bound``).
+Bracket checks (:mod:`objcam.probe.exposure`; InputError naming the frame to change): saturated everywhere (the
+SHORTEST frame: add shorter exposures) or exposed nowhere (the LONGEST frame: add longer ones), over the image
+and then over the ball's pixels; a bracket whose longest frame saturates nowhere on a dim ball is a warning
+(``ProbeResult.warnings``). A few saturated pixels (the sun) are expected: they are flagged, their texels marked
+SATURATED, and the energy there is a lower bound (``ProbeResult.lower_bound``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from objcam.camera import Camera
-from objcam.errors import InputError
+from objcam.probe.exposure import MAX_BAD_FRACTION, check_bracket, dim_warning  # noqa: F401 (re-exported)
 from objcam.probe.fit import BallFit, fit_ball
 from objcam.probe.optics import Reflectance
 from objcam.probe.unwrap import ProbeEnvmap, unwrap
-
-MAX_BAD_FRACTION = 0.5
+from objcam.threads import single_blas_thread
 
 
 @dataclass
@@ -38,6 +32,7 @@ class ProbeResult:
     valid: np.ndarray | None = None  # (h, 2h) bool
     saturated: np.ndarray | None = None  # (h, 2h) bool: lower bounds
     ball_saturated_fraction: float = 0.0  # of the ball's pixels saturated in every frame
+    warnings: list[str] = field(default_factory=list)  # the fit's, and a dim bracket's (objcam.probe.exposure)
 
     @property
     def lower_bound(self) -> bool:
@@ -45,7 +40,8 @@ class ProbeResult:
 
     def summary(self) -> dict:
         out = {"fit": self.fit.to_dict(), "probe": self.probe.summary(),
-               "ball_saturated_fraction": self.ball_saturated_fraction, "lower_bound": self.lower_bound}
+               "ball_saturated_fraction": self.ball_saturated_fraction, "lower_bound": self.lower_bound,
+               "warnings": list(self.warnings)}
         if self.valid is not None:
             out["solve_height"] = int(self.valid.shape[0])
             out["valid_texels"] = int(self.valid.sum())
@@ -73,46 +69,13 @@ def ball_mask(camera: Camera, centre, radius: float) -> np.ndarray:
     return (t > 0) & (miss2 <= radius * radius)
 
 
-def _frame(merge, shortest: bool) -> Path | None:
-    paths = getattr(merge, "paths", ())
-    if not paths:
-        return None
-    return Path(paths[0] if shortest else paths[-1])
-
-
-def check_bracket(merge, region: np.ndarray | None = None, what: str = "the image") -> None:
-    """Raise InputError when ``region`` (bool (H, W), default everything) of a MergeResult is mostly saturated in
-    every frame, or mostly without a usable frame (see the module doc)."""
-    valid = np.asarray(merge.valid, bool)
-    m = np.ones(valid.shape, bool) if region is None else np.asarray(region, bool)
-    n = int(m.sum())
-    if n == 0:
-        return
-    sat = float((~valid & m).sum()) / n
-    if sat > MAX_BAD_FRACTION:
-        times = getattr(merge, "times", ())
-        t0 = f" ({times[0]:.4g} s)" if times else ""
-        raise InputError(f"{100 * sat:.0f}% of {what} is saturated in every frame of the bracket, even the "
-                         f"shortest{t0}", _frame(merge, True),
-                         "add shorter exposures (2-3 stops apart) until the brightest part of the ball, the sun "
-                         "aside, is below the white level in the shortest frame")
-    used = np.asarray(getattr(merge, "frames_used", np.ones(valid.shape, np.uint8)))
-    dark = float((valid & (used == 0) & m).sum()) / n
-    if dark > MAX_BAD_FRACTION:
-        times = getattr(merge, "times", ())
-        t1 = f" ({times[-1]:.4g} s)" if times else ""
-        raise InputError(f"{100 * dark:.0f}% of {what} has no usable signal in any frame of the bracket, even "
-                         f"the longest{t1}", _frame(merge, False),
-                         "add longer exposures (2-3 stops apart) until the ball's darkest reflections reach "
-                         "about 1/4 of the white level in the longest frame")
-
-
 def recover_probe(hdr, camera: Camera, radius: float, *, known_centre=None, rests_on_plane: bool = True,
                   approx_px=None, skip_contact: float = 1.0, height: int | None = None,
                   solve_height: int | None = None, reflectance: Reflectance | None = None,
                   max_incidence_deg: float = 80.0, camera_cone_deg: float = 10.0, min_valid_fraction: float = 0.5,
                   interpolation: str = "cubic", source: str | Path | None = None,
-                  on_step: Callable[[str], None] | None = None) -> ProbeResult:
+                  on_step: Callable[[str], None] | None = None, use_rim: bool = True,
+                  contact_arc: str = "auto") -> ProbeResult:
     """Ground-truth envmap from a chrome ball of ``radius`` metres in ``hdr``: a
     :class:`~objcam.capture.hdr.MergeResult` (bracket checks and saturation flags) or an (H, W, 3) array.
 
@@ -129,19 +92,25 @@ def recover_probe(hdr, camera: Camera, radius: float, *, known_centre=None, rest
     if merge is not None:
         check_bracket(merge)
     step("fit")
-    fit = fit_ball(hdr, camera, radius, known_centre=known_centre, rests_on_plane=rests_on_plane,
-                   approx_px=approx_px, skip_contact=skip_contact, source=source)
+    with single_blas_thread():  # many small least-squares solves: threads only add overhead
+        fit = fit_ball(hdr, camera, radius, known_centre=known_centre, rests_on_plane=rests_on_plane,
+                       approx_px=approx_px, skip_contact=skip_contact, source=source, use_rim=use_rim,
+                       contact_arc=contact_arc)
     sat_frac = 0.0
+    warnings = list(fit.warnings)
     if merge is not None:
         ball = ball_mask(camera, fit.centre_world, radius)
         check_bracket(merge, ball, "the chrome ball")
         sat_frac = float((~np.asarray(merge.valid, bool) & ball).sum() / max(ball.sum(), 1))
+        dim = dim_warning(merge, ball)
+        if dim:
+            warnings.append(dim)
     step("unwrap")
     if height is None:
         height = fine_height(fit.apparent_radius_px, solve_height or 1)
     probe = unwrap(hdr, camera, fit.centre_world, radius, height=height, reflectance=reflectance,
                    max_incidence_deg=max_incidence_deg, camera_cone_deg=camera_cone_deg, interpolation=interpolation)
-    res = ProbeResult(fit, probe, ball_saturated_fraction=sat_frac)
+    res = ProbeResult(fit, probe, ball_saturated_fraction=sat_frac, warnings=warnings)
     if solve_height is not None:
         step("downsample")
         res.envmap, res.valid, res.saturated = probe.downsample(solve_height, min_valid_fraction)

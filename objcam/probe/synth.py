@@ -106,11 +106,14 @@ def render_probe(envmap: str | np.ndarray = "forest", *, radius: float = 0.025, 
                  size: int | tuple[int, int] = 256, ball_px: float = 150.0, offset_px=(0.0, 0.0),
                  material: str = "Cr", mirror_reflectance: float = 0.65, plane_albedo: float | None = None,
                  spp: int = 64, seed: int = 0, upsample: int = 16, camera: Camera | None = None,
-                 extra_balls: Sequence[tuple[Sequence[float], float]] = ()) -> ProbeRender:
+                 extra_balls: Sequence[tuple[Sequence[float], float]] = (),
+                 band_px: float | None = None) -> ProbeRender:
     """Render a chrome ball (default 5 cm diameter, centre at (0, 0, radius)) under ``envmap`` (bundled name or
     array in objcam's convention) with :func:`objcam.render.render_image` (``spp`` independent samples per pixel,
     box pixel filter). ``camera`` overrides the one :func:`probe_camera` builds. ``extra_balls``: more
-    (centre, radius) balls of the same material (for bad-input tests). Returns the clean HDR render and truth.
+    (centre, radius) balls of the same material (for bad-input tests). ``band_px``: render only the pixels within
+    that many pixels of the ball's silhouette, the rest 0 (rim-fit tests on large balls at a fraction of the
+    cost). Returns the clean HDR render and truth.
 
     Monte Carlo noise: a mirror needs no light sampling (every sample is exact), the only noise is which part
     of each pixel's footprint a sample hits; a sun spanning ~1 pixel thus gets +-5-10 % energy noise at 64
@@ -128,10 +131,31 @@ def render_probe(envmap: str | np.ndarray = "forest", *, radius: float = 0.025, 
     scene = _scene(mi, env, [(c, radius), *extra_balls], material, mirror_reflectance, plane_albedo, upsample)
     t0 = time.perf_counter()
     depth = 3 if plane_albedo is not None else 2
-    clean = render_image(scene, cam, spp=spp, max_depth=depth, seed=seed)
+    if band_px is None:
+        clean = render_image(scene, cam, spp=spp, max_depth=depth, seed=seed)
+    else:
+        clean = _render_band(scene, cam, c, float(radius), band_px, spp, depth, seed)
     secs = time.perf_counter() - t0
     return ProbeRender(clean, cam, c, float(radius), env, _material_reflectance(mi, material, mirror_reflectance),
                        spp, secs)
+
+
+def _render_band(scene, cam: Camera, centre: np.ndarray, radius: float, band_px: float, spp: int, depth: int,
+                 seed: int) -> np.ndarray:
+    """(H, W, 3) float32: the pixels within ``band_px`` of the silhouette rendered (box filter), the rest 0."""
+    import cv2
+
+    from objcam.probe.fit import silhouette_px
+    from objcam.render import render_rays
+
+    poly = silhouette_px(cam, centre[None], radius, 2048)[0]
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.polylines(mask, [np.round(poly * 4).astype(np.int32)], True, 1,
+                  thickness=2 * int(np.ceil(band_px)) + 1, shift=2)
+    vv, uu = np.nonzero(mask)
+    out = np.zeros((cam.height, cam.width, 3), np.float32)
+    out[vv, uu] = render_rays(scene, uu.astype(np.float32), vv.astype(np.float32), cam, spp, depth, seed)
+    return out
 
 
 def make_bracket(clean: np.ndarray, times: Sequence[float] | None = None, *, n_frames: int | None = None,
@@ -175,7 +199,8 @@ def write_ingest_probe(folder: Path, bracket: ProbeBracket, frame_folder: str = 
     """Write a merged bracket in the ingest stage's contract (``ingest/probes/<name>/``): ``image.exr`` (linear
     RGB float32, exposure-normalised: scene radiance x 1 s, as :attr:`ProbeBracket.hdr`), ``valid.png`` (255 =
     usable, 0 = saturated in every frame) and ``merge.json`` (as objcam.capture.photos writes it: frame file
-    names, their capture-relative ``folder``, ``exposure_times_s`` ascending, saturated fraction). For tests and benchmarks of the probe stage."""
+    names, their capture-relative ``folder``, ``exposure_times_s`` ascending, saturated fraction, ``n_fallback``:
+    pixels with no usable frame). For tests and benchmarks of the probe stage."""
     import json
 
     from objcam.image_io import atomic_write_text, write_exr, write_png
@@ -187,5 +212,6 @@ def write_ingest_probe(folder: Path, bracket: ProbeBracket, frame_folder: str = 
     write_png(folder / "valid.png", valid.astype(np.float64))
     info = {"frames": [Path(p).name for p in bracket.merge.paths], "folder": frame_folder,
             "exposure_times_s": [float(t) for t in bracket.merge.times], "units": "per_second",
-            "saturated_fraction": float(1.0 - valid.mean()), "n_invalid": int((~valid).sum())}
+            "saturated_fraction": float(1.0 - valid.mean()), "n_invalid": int((~valid).sum()),
+            "n_fallback": int(bracket.merge.n_fallback), "frames_used_mean": float(bracket.merge.frames_used.mean())}
     atomic_write_text(folder / "merge.json", json.dumps(info, indent=2))

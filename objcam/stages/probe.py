@@ -4,11 +4,13 @@ Applies when the capture lists ``[[probes]]``. Per probe it reads ingest's merge
 (``ingest/probes/<name>/image.exr``, ``valid.png``, ``merge.json``) and the camera that took it (the manifest's
 ``camera`` file, else sfm's ``cameras/probes/<name>.json``), then (objcam.probe.recover):
 
-1. checks the bracket (most of the image or of the ball saturated in every frame: an error naming the shortest
-   frame);
-2. fits the ball's 3D centre to its silhouette with the perspective cone, sub-pixel: at the manifest's ``centre``
-   when given (the fit then measures how well the photo agrees with it), else on the plane (centre at
-   z = radius, only x and y free);
+1. checks the bracket (objcam.probe.exposure; most of the image or of the ball saturated in every frame: an error
+   naming the shortest frame; most of it without signal in any frame: an error naming the longest; a longest
+   frame that clips nowhere on a dim ball: a warning naming it);
+2. fits the ball's 3D centre to its silhouette with the perspective cone, sub-pixel (objcam.probe.fit; the rim
+   model of objcam.probe.rim for balls >= 300 px in radius, ``rim``): at the manifest's ``centre`` when given
+   (the known 3D centre, e.g. board pose plus radius: used as is; a fit at its height reports how far the photo
+   puts the ball, warned about beyond 0.5 mm), else on the plane (centre at z = radius, only x and y free);
 3. unwraps the mirror reflection onto a fine world lat-long grid (``height`` rows) by inverse mapping: for each
    texel direction the exact perspective reflection point on the sphere (reflection law, the camera's true
    centre), sampled bicubically, divided by the ball's reflectance at that incidence angle; masks the camera's
@@ -89,6 +91,11 @@ class Params(BaseModel):
     fresnel: Literal["conductor", "schlick", "none"] = Field("conductor", description="angular shape of the "
                                                              "reflectance (conductor: chromium's exact Fresnel)")
     interpolation: Literal["cubic", "linear"] = Field("cubic", description="image sampling of the unwrap")
+    rim: bool = Field(True, description="refine the ball's centre with the rim model (objcam.probe.rim) when its "
+                      "apparent radius is >= 300 px; false: the edge fit alone")
+    contact_arc: Literal["auto", "fit", "skip"] = Field("auto", description="the silhouette's arc against the "
+                                                        "support next to the contact point (contact shadow): fitted "
+                                                        "when its edges agree with the rest (auto), always, or never")
 
     @model_validator(mode="after")
     def _multiple(self):
@@ -112,13 +119,18 @@ def input_files(capture: Path) -> list[Path]:
 class MergedProbe:
     """Ingest's merged bracket as objcam.probe.recover reads a MergeResult: radiance (H, W, 3) float32, valid
     (H, W) bool (False: saturated in every frame), frames and exposure times ascending (from merge.json; the
-    error messages name them)."""
+    error messages name them), units ("per_second" for raw/TIFF/EXR brackets; "relative" for JPEG brackets,
+    whose levels the exposure checks cannot recover) and the white balance in the data (merge.json's
+    ``white_balance``, else none)."""
 
     radiance: np.ndarray
     valid: np.ndarray
     paths: tuple[Path, ...] = ()
     times: tuple[float, ...] = ()
     info: dict = field(default_factory=dict)
+    units: str = "per_second"
+    wb: np.ndarray | None = None
+    n_fallback: int | None = None  # pixels with no usable frame (merge.json), for the bracket checks
 
 
 def _merge_info(path: Path, capture: Path, folder: str) -> tuple[tuple[Path, ...], tuple[float, ...], dict]:
@@ -197,7 +209,12 @@ def _load_merged(spec: ProbeSpec, capture: Path, upstream: dict[str, Path], cam:
     paths, times, info = _merge_info(folder / "merge.json", capture, spec.folder)
     if not paths:  # no frame list: errors name the merged image
         paths, times = (img_path,), ()
-    return MergedProbe(np.ascontiguousarray(np.maximum(rgb, 0), np.float32), valid, paths, times, info)
+    relative = "opencv" in str(info.get("reader", "")).lower() or info.get("units", "per_second") != "per_second"
+    wb = info.get("white_balance")
+    wb = np.asarray(wb, np.float32) if isinstance(wb, list) and len(wb) == 3 else None
+    n_fb = info.get("n_fallback")
+    return MergedProbe(np.ascontiguousarray(np.maximum(rgb, 0), np.float32), valid, paths, times, info,
+                       "relative" if relative else "per_second", wb, int(n_fb) if isinstance(n_fb, int) else None)
 
 
 def _reflectance(spec: ProbeSpec, params: Params):
@@ -257,12 +274,12 @@ def _one(spec: ProbeSpec, capture: Path, inputs: StageInputs, params: Params, pb
                         height=params.height, solve_height=params.env_height, reflectance=refl,
                         max_incidence_deg=params.max_incidence_deg, camera_cone_deg=params.camera_cone_deg,
                         min_valid_fraction=params.min_valid_fraction, interpolation=params.interpolation,
-                        source=source, on_step=step)
+                        source=source, on_step=step, use_rim=params.rim, contact_arc=params.contact_arc)
     step("write")
     fit, probe = res.fit, res.probe
     sources = saturated_sources(probe)
     ball_sat_px = int(round(res.ball_saturated_fraction * np.pi * fit.apparent_radius_px ** 2))
-    warnings = list(fit.warnings)
+    warnings = list(res.warnings)
     if res.lower_bound:
         warnings.append(f"{len(sources)} source(s) saturated in every frame of the bracket: their texels are "
                         "invalid and their energy is a lower bound")
