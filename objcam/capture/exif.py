@@ -167,5 +167,8 @@ def exposure_time(path: str | Path, override: float | None = None) -> float:
         return float(override)
     t = read_exif(path).exposure_time
     if t is None:
+        from objcam.capture.raw import check_readable
+
+        check_readable(Path(path))  # a file that is no image at all has no EXIF either: say that first
         raise InputError("no exposure time in the EXIF", path, MISSING_EXPOSURE_FIX)
     return t

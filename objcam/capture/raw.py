@@ -147,6 +147,19 @@ def _open_raw(path: Path):
     return raw
 
 
+def check_readable(path: Path) -> None:
+    """InputError naming ``path`` unless it opens as an image of its kind (a raw's header parses; TIFF/JPEG/PNG
+    decode). Used where a missing EXIF field would otherwise be reported for a file that is not an image."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext in RAW_EXTENSIONS:
+        _open_raw(path).close()
+    elif ext in TIFF_EXTENSIONS or ext in LDR_EXTENSIONS:
+        import cv2
+
+        _imread(path, cv2.IMREAD_UNCHANGED)
+
+
 def _echo(err: list[str]) -> None:
     text = "".join(err)
     if text:

@@ -17,6 +17,7 @@ integers, so objcam cx = COLMAP cx - 0.5 (:func:`camera_to_colmap_params`, ``obj
 from __future__ import annotations
 
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import Literal, Mapping, Sequence
@@ -48,7 +49,8 @@ class SfmOptions(BaseModel):
     init_min_num_inliers: int = Field(50, ge=15, description="inlier matches an initial pair needs (COLMAP: 100)")
     init_min_tri_angle: float = Field(8.0, gt=0, description="triangulation angle of the initial pair, degrees "
                                       "(COLMAP: 16)")
-    quiet_log: bool = Field(True, description="hide COLMAP's INFO log lines (warnings and errors still print)")
+    quiet_log: bool = Field(True, description="hide COLMAP's INFO log lines (its warnings print after a "
+                            "successful run; a failed one is the InputError's one line)")
 
 
 class SfmResult(BaseModel):
@@ -194,70 +196,84 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
         pycolmap.logging.minloglevel = 1
     seconds: dict[str, float] = {}
 
-    t = time.perf_counter()
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = options.num_threads
-    ext.max_image_size = options.max_image_size
-    ext.sift.max_num_features = options.max_num_features
-    for group, names in camera_groups(groups, camera_of).items():
-        if not names:
-            continue
-        known = intrinsics.get(group)
-        guess = (initial_intrinsics or {}).get(group)
-        reader = pycolmap.ImageReaderOptions()
-        if known is not None:
-            reader.camera_model = "PINHOLE"
-            reader.camera_params = ",".join(repr(float(x)) for x in camera_to_colmap_params(known, "PINHOLE"))
-        elif guess is not None:
-            reader.camera_model = options.camera_model
-            params = camera_to_colmap_params(guess[0], options.camera_model)
-            if options.camera_model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV") and guess[1]:
-                params[{"SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4}[options.camera_model]] = float(guess[1][0])
-            reader.camera_params = ",".join(repr(float(x)) for x in params)
+    def colmap() -> tuple[dict, bool]:
+        seeded = False
+        t = time.perf_counter()
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.num_threads = options.num_threads
+        ext.max_image_size = options.max_image_size
+        ext.sift.max_num_features = options.max_num_features
+        for group, names in camera_groups(groups, camera_of).items():
+            if not names:
+                continue
+            known = intrinsics.get(group)
+            guess = (initial_intrinsics or {}).get(group)
+            reader = pycolmap.ImageReaderOptions()
+            if known is not None:
+                reader.camera_model = "PINHOLE"
+                reader.camera_params = ",".join(repr(float(x)) for x in camera_to_colmap_params(known, "PINHOLE"))
+            elif guess is not None:
+                reader.camera_model = options.camera_model
+                params = camera_to_colmap_params(guess[0], options.camera_model)
+                if options.camera_model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV") and guess[1]:
+                    params[{"SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4}[options.camera_model]] = float(guess[1][0])
+                reader.camera_params = ",".join(repr(float(x)) for x in params)
+            else:
+                reader.camera_model = options.camera_model
+            pycolmap.extract_features(db, image_dir, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
+        seconds["extract"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        match = pycolmap.FeatureMatchingOptions()
+        match.num_threads = options.num_threads
+        verify = pycolmap.TwoViewGeometryOptions()
+        verify.ransac.random_seed = options.seed
+        pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify, device=pycolmap.Device.cpu)
+        seconds["match"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        mo = pycolmap.IncrementalPipelineOptions()
+        mo.num_threads = options.num_threads
+        mo.random_seed = options.seed
+        mo.min_model_size = min(mo.min_model_size, max(2, len(all_names) // 2))
+        # small, nearly planar tabletop scenes: fewer matches than COLMAP's defaults expect
+        mo.mapper.init_min_num_inliers = options.init_min_num_inliers
+        mo.mapper.abs_pose_min_num_inliers = min(mo.mapper.abs_pose_min_num_inliers, options.init_min_num_inliers)
+        mo.mapper.init_min_tri_angle = options.init_min_tri_angle
+        fixed_ids = _fixed_camera_ids(db, camera_groups(groups, camera_of), intrinsics)
+        if fixed_ids:
+            mo.constant_cameras = set(fixed_ids)
+        if not options.refine_intrinsics:
+            mo.ba_refine_focal_length = False
+            mo.ba_refine_extra_params = False
+        mo.ba_refine_principal_point = False
+        if seed_poses and len([n for n in seed_poses if n in all_names]) >= 2:
+            seed_dir = work / "seed"
+            if seed_dir.exists():
+                shutil.rmtree(seed_dir)
+            seed = _seed_model(db, seed_poses)
+            tri = pycolmap.triangulate_points(seed, db, image_dir, _mk(seed_dir), options=mo)
+            tri.write(str(seed_dir))
+            models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo, input_path=seed_dir)
+            shutil.rmtree(seed_dir, ignore_errors=True)
+            seeded = True
         else:
-            reader.camera_model = options.camera_model
-        pycolmap.extract_features(db, image_dir, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
-    seconds["extract"] = time.perf_counter() - t
+            models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo)
+        seconds["map"] = time.perf_counter() - t
+        return models, seeded
 
-    t = time.perf_counter()
-    match = pycolmap.FeatureMatchingOptions()
-    match.num_threads = options.num_threads
-    verify = pycolmap.TwoViewGeometryOptions()
-    verify.ransac.random_seed = options.seed
-    pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify, device=pycolmap.Device.cpu)
-    seconds["match"] = time.perf_counter() - t
+    # COLMAP logs warnings and errors (glog) straight to file descriptor 2; a failed run is reported in one line
+    # below, so its log lines are shown only when SfM succeeds
+    from objcam.capture.raw import capture_c_stderr
 
-    t = time.perf_counter()
-    mo = pycolmap.IncrementalPipelineOptions()
-    mo.num_threads = options.num_threads
-    mo.random_seed = options.seed
-    mo.min_model_size = min(mo.min_model_size, max(2, len(all_names) // 2))
-    # small, nearly planar tabletop scenes: fewer matches than COLMAP's defaults expect
-    mo.mapper.init_min_num_inliers = options.init_min_num_inliers
-    mo.mapper.abs_pose_min_num_inliers = min(mo.mapper.abs_pose_min_num_inliers, options.init_min_num_inliers)
-    mo.mapper.init_min_tri_angle = options.init_min_tri_angle
-    fixed_ids = _fixed_camera_ids(db, camera_groups(groups, camera_of), intrinsics)
-    if fixed_ids:
-        mo.constant_cameras = set(fixed_ids)
-    if not options.refine_intrinsics:
-        mo.ba_refine_focal_length = False
-        mo.ba_refine_extra_params = False
-    mo.ba_refine_principal_point = False
-    seeded = False
-    if seed_poses and len([n for n in seed_poses if n in all_names]) >= 2:
-        seed_dir = work / "seed"
-        if seed_dir.exists():
-            shutil.rmtree(seed_dir)
-        seed = _seed_model(db, seed_poses)
-        tri = pycolmap.triangulate_points(seed, db, image_dir, _mk(seed_dir), options=mo)
-        tri.write(str(seed_dir))
-        models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo, input_path=seed_dir)
-        shutil.rmtree(seed_dir, ignore_errors=True)
-        seeded = True
-    else:
-        models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo)
-    seconds["map"] = time.perf_counter() - t
+    with capture_c_stderr() as log:
+        models, seeded = colmap()
+    log_text = "".join(log)
+
+    def echo_log() -> None:
+        if log_text:
+            sys.stderr.write(log_text)
 
     if not models:
         raise InputError(f"structure from motion registered none of the {len(all_names)} images", where,
@@ -282,6 +298,7 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
                          f"(not: {shown})", where,
                          "add views with more overlap (neighbouring views 10-20 degrees apart), keep the board "
                          "and the object in every view, avoid blur")
+    echo_log()
     return result
 
 

@@ -173,7 +173,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             extra[f"{kind}/{name}"] = p
     camera_of = _camera_of(params, ingest, views, extra, view_recs)
     if m.board is None:
-        result = _estimate_with_scale(out, views, targets, probes, params, m, camera_of)
+        result = _estimate_with_scale(out, views, targets, probes, params, m, camera_of, capture)
     else:
         result = estimate_cameras(out, views, targets=targets, probes=probes,
                                   options=_frontend_options(params, m), camera_of=camera_of,
@@ -227,7 +227,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     return StageOutputs(metrics=metrics, summary=summary)
 
 
-def _estimate_with_scale(out: Path, views, targets, probes, params: Params, m: CaptureManifest, camera_of):
+def _estimate_with_scale(out: Path, views, targets, probes, params: Params, m: CaptureManifest, camera_of,
+                         capture: Path):
     """No board: SfM, then the plane/height world frame (module doc)."""
     from objcam.sfm.frontend import estimate_cameras_without_board
 
