@@ -11,7 +11,7 @@ DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo demo-full test bench status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -39,8 +39,27 @@ demo-full: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q $(ARGS)
 
-bench: $(STAMP)
+# benchmarks, each writing its block of bench/results.md (renders are cached under bench/out/):
+#   core      transport models x solvers, speed against error on 4 HDRIs (issue 2; ~40 min the first time)
+#   analysis  leverage and uncertainty timing and accuracy (issue 7; 15 s)
+#   joint     the joint-solve ablation table, Adam included (issue 6; ~1 h)
+#   probe     chrome-ball unwrap against the true envmap (issue 5; ~5 min)
+#   geometry  plane, known-shape registration, reconstruction, texture (issue 4; ~20 min)
+#   e2e       objcam run from raw DNGs against its known-geometry twin (issues 3, 4; ~1 h the first time)
+BENCH ?= core analysis joint probe geometry e2e
+bench: $(addprefix bench-,$(BENCH))
+bench-core: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
+bench-analysis: $(STAMP)
+	$(BIN)/python -m bench.analysis_bench --write $(ARGS)
+bench-joint: $(STAMP)
+	$(BIN)/python -m bench.ablation --write $(ARGS)
+bench-probe: $(STAMP)
+	$(BIN)/python -m bench.probe_bench --write $(ARGS)
+bench-geometry: $(STAMP)
+	$(BIN)/python -m bench.geometry_bench --write $(ARGS)
+bench-e2e: $(STAMP)
+	$(BIN)/python -m bench.e2e_bench --write $(ARGS)
 
 # occluder design: bunny, sphere and coded mask (plus any --mesh FILE in ARGS) compared on one setup
 DESIGN_OUT ?= demo/design

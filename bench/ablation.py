@@ -307,14 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps(checks, indent=1))
     log(f"ablation done in {time.perf_counter() - t0:.0f} s")
     if a.write:
-        res = Path("bench/results.md")
-        body = res.read_text()
-        head = "## Joint solve ablation (issue 6)"
-        start = body.index(head)
-        nxt = body.find("\n## ", start + len(head))
-        section = f"{head}\n\n{text}\n"
-        body = body[:start] + section + (body[nxt + 1:] if nxt >= 0 else "")
-        res.write_text(body)
+        from bench.sections import write_section
+
+        write_section("joint", text, "Joint solve ablation (issue 6)")
     return 0
 
 

@@ -110,6 +110,7 @@ def markdown(rows: list[tuple[str, tuple[int, int], dict]], agree: dict, load: t
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the random worst case only (no transport build)")
+    ap.add_argument("--write", action="store_true", help="replace the analysis block of bench/results.md")
     args = ap.parse_args(argv)
     load0 = os.getloadavg()[0]
     rows = []
@@ -119,7 +120,12 @@ def main(argv: list[str] | None = None) -> int:
     A = random_transport(128 * 128, 32 * 64)
     rows.append(("random, every texel kept", A.shape, time_analysis(A)))
     agree = dense_agreement()
-    print(markdown(rows, agree, (load0, os.getloadavg()[0])))
+    md = markdown(rows, agree, (load0, os.getloadavg()[0]))
+    print(md)
+    if args.write:
+        from bench.sections import invocation, write_section
+
+        write_section("analysis", f"{invocation('bench.analysis_bench', argv)}.\n\n{md}", "Analysis (issue 7)")
     ok = all(t["analysis"] <= TARGET_S for _, _, t in rows) and max(agree["leverage"], agree["uncertainty"]) < 1e-6
     return 0 if ok else 1
 

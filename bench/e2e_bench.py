@@ -479,6 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=E2E_FULL["width"])
     ap.add_argument("--height", type=int, default=E2E_FULL["height"])
     ap.add_argument("--synth", default="{}", help="more FullSynthParams as JSON")
+    ap.add_argument("--write", action="store_true", help="replace the e2e block of bench/results.md")
     a = ap.parse_args(argv)
     os.environ.setdefault("OBJCAM_QUIET", "1")
     res: dict = {"load_at_start": loadavg(), "machine_cores": os.cpu_count()}
@@ -508,6 +509,11 @@ def main(argv: list[str] | None = None) -> int:
     md = markdown(res)
     (root / "results.md").write_text(md + "\n")
     print(md)
+    if a.write:
+        from bench.sections import invocation, write_section
+
+        write_section("e2e", f"{invocation('bench.e2e_bench', argv)}.\n\n{md}",
+                      "End to end from raw photos (issues 3 and 4)")
     print(f"load average: {res['load_at_start']} at start, {res['load_at_end']} at end (2 cores); {root}")
     ok = all(bool(r.get("compare")) and all(c["within_10pct"] for c in r["compare"])
              for r in res["variants"].values())

@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=800)
     ap.add_argument("--height", type=int, default=600)
     ap.add_argument("--out", default="bench/out/geometry")
+    ap.add_argument("--write", action="store_true", help="replace the geometry block of bench/results.md")
     a = ap.parse_args(argv)
     os.environ.setdefault("OBJCAM_QUIET", "1")
     out = Path(a.out)
@@ -126,12 +127,15 @@ def main(argv: list[str] | None = None) -> int:
         ("object albedo bias (estimate - truth 0.6), median", f"{alb.object_bias:+.3f}", ""),
         ("load average at the stages' start (2 cores)", f"{g_load:.1f} / {t_load:.1f} / {r_load:.1f}", ""),
     ]
-    print(f"View ring: {params.n_views} views at {params.width} x {params.height} on rings at "
-          f"{', '.join(f'{e:g}' for e in params.elevations_deg)} deg, {params.spp} spp, bunny {height * 100:.0f} cm, "
-          f"cameras perturbed (0.2 mm, 0.02 deg).\n")
-    print("| measure | result | target |\n|---|---:|---|")
-    for r in rows:
-        print(f"| {r[0]} | {r[1]} | {r[2]} |")
+    md = "\n".join([f"View ring: {params.n_views} views at {params.width} x {params.height} on rings at "
+                    f"{', '.join(f'{e:g}' for e in params.elevations_deg)} deg, {params.spp} spp, bunny "
+                    f"{height * 100:.0f} cm, cameras perturbed (0.2 mm, 0.02 deg).", "",
+                    "| measure | result | target |", "|---|---:|---|"] + [f"| {r[0]} | {r[1]} | {r[2]} |" for r in rows])
+    print(md)
+    if a.write:
+        from bench.sections import invocation, write_section
+
+        write_section("geometry", f"{invocation('bench.geometry_bench', argv)}.\n\n{md}", "Geometry and texture (issue 4)")
     (runs / "results.json").write_text(json.dumps({"rows": rows, "ring": params.model_dump(), "geometry": m,
                                                    "texture": t_res.metrics, "reconstruct": r_res.metrics},
                                                   indent=2, default=str))

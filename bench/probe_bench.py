@@ -141,6 +141,7 @@ def main(argv=None) -> None:
     ap.add_argument("--plane-albedo", type=float, help="render the support plane (this albedo) under the ball; "
                     "the map is then scored over the upper hemisphere")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    ap.add_argument("--write", action="store_true", help="replace the probe block of bench/results.md")
     a = ap.parse_args(argv)
     params = Params(**{k: json.loads(v) if v[:1] in "0123456789-[{tfn" else v
                        for k, v in (s.split("=", 1) for s in a.set)})
@@ -154,6 +155,10 @@ def main(argv=None) -> None:
               f"render {r['render_s']:.1f} s", flush=True)
     print()
     print(table(rows))
+    if a.write:
+        from bench.sections import invocation, write_section
+
+        write_section("probe", f"{invocation('bench.probe_bench', argv)}.\n\n{table(rows)}", "Chrome-ball probe (issue 5)")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=2))
 
