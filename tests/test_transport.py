@@ -183,7 +183,9 @@ def _camera_of(model):
 
 def test_stage_storage_dropped_pixels_texels_and_predict(art, model, tmp_path):
     folder, cam = art
-    m = _run(folder, tmp_path / "a", model="direct", samples=4, subpixel_samples=16)
+    # one sample set for every pixel (object pixels at the support's counts), to compare with the fixture's model
+    m = _run(folder, tmp_path / "a", model="direct", samples=4, subpixel_samples=16, object_samples=4,
+             object_subpixel_samples=16)
     index = json.loads((tmp_path / "a" / "index.json").read_text())
     assert index["targets"] == {"t0": "cam0", "t1": "cam0"}  # one A for two targets sharing a camera
     T = load_transport(tmp_path / "a", "t1")
@@ -266,15 +268,17 @@ def test_colour_and_unknown_albedo(tmp_path):
     assert np.allclose(ap[0][obj], ap[2][obj], rtol=1e-5, atol=1e-9)
 
 
-def test_auto_decides_against_the_noise(art, tmp_path):
+@pytest.mark.parametrize("indirect", ["gather", "path"])
+def test_auto_decides_against_the_noise(art, tmp_path, indirect):
     folder, _ = art
     m = _run(folder, tmp_path / "loud", model="auto", auto_noise=0.5, auto_columns=6, auto_spp=8,
              correction_spp=8)
     assert m["auto_choice"] == "direct" and m["model"] == "direct"
     assert 0.005 < m["auto_relative_indirect"] < 0.5  # a grey 0.8 plane bounces a few % onto the sphere
     m2 = _run(folder, tmp_path / "quiet", model="auto", auto_noise=1e-4, auto_columns=6, auto_spp=8,
-              correction_spp=8)
-    assert m2["auto_choice"] == "direct+indirect" and m2["correction_renders"] > 0
+              correction_spp=8, indirect=indirect)
+    assert m2["auto_choice"] == "direct+indirect" and m2["indirect"] == indirect
+    assert (m2["gather_hits"] if indirect == "gather" else m2["correction_renders"]) > 0
     a, b = load_transport(tmp_path / "loud", "t0"), load_transport(tmp_path / "quiet", "t0")
     assert np.array_equal(a.texel_index, b.texel_index)
     extra = (b.A - a.A).sum() / a.A.sum()

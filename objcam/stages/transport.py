@@ -30,6 +30,9 @@ class Params(BaseModel):
     subpixel_samples: int = Field(32, ge=1, description="direct: S camera rays per pooled pixel (rounded up to a "
                                                          "multiple of K); pairs at shadow boundaries and pixels "
                                                          "mixing surfaces trace one ray per sample. Quality: 64")
+    object_samples: int = Field(16, ge=1, description="direct: K for the pixels that see the object")
+    object_subpixel_samples: int = Field(256, ge=1, description="direct: S for the pixels that see the object "
+                                         "(their faceted normals and silhouette vary inside the pixel)")
     refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
     downsample: int = Field(1, ge=1, description="pool f x f pixel blocks (pool the target with pool_target)")
     seed: int = 0
@@ -52,6 +55,12 @@ class Params(BaseModel):
     correction_detail_px: int = Field(3, ge=-1, description="auto: pixels within this many (pooled) pixels of the "
                                       "object get their own indirect render, not the coarse image's (-1: none)")
     correction_detail_spp: int = Field(128, ge=1, description="auto: spp of those per-pixel indirect renders")
+    indirect: Literal["gather", "path"] = Field("gather", description="auto: how the indirect light is added: "
+                                                "'gather' (deterministic: direct light on surface nodes gathered "
+                                                "by rays traced once for every column, objcam.transport.gather) or "
+                                                "'path' (path-traced correction per texel block, correction_*)")
+    gather_rays: int = Field(256, ge=1, description="auto, gather: rays per pixel over its hemisphere")
+    gather_node_rays: int = Field(64, ge=1, description="auto, gather: rays per surface node (further bounces)")
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:

@@ -11,7 +11,7 @@ import numpy as np
 from objcam.camera import Camera
 from objcam.envmap import EnvGrid
 from objcam.progress import bar
-from objcam.transport.geometry import SceneGeometry, primary_samples
+from objcam.transport.geometry import SampleParts, SceneGeometry, primary_samples
 from objcam.transport.pixels import pool_target, pooled_shape
 from objcam.transport.storage import ColumnWriter, add_to_columns
 
@@ -22,6 +22,8 @@ class BuildSettings:
     env_height: int = 32
     samples: int = 4
     subpixel_samples: int = 32
+    object_samples: int = 16
+    object_subpixel_samples: int = 256
     refine: bool = True
     downsample: int = 1
     seed: int = 0
@@ -40,6 +42,9 @@ class BuildSettings:
     correction_texel_block: int = 4
     correction_detail_px: int = 3
     correction_detail_spp: int = 128
+    indirect: str = "gather"  # auto's indirect light: gather (objcam.transport.gather) | path (IndirectCorrection)
+    gather_rays: int = 256
+    gather_node_rays: int = 64
     pair_budget: int = 1 << 22  # (pixel, texel) pairs classified per block
 
 
@@ -87,11 +92,27 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
     writer = ColumnWriter(folder, channels, m, n_total, s.chunk_columns)
     model = s.model
     dm = pr = None
+    parts = SampleParts.single(samples)
     if model in ("direct", "auto"):
-        from objcam.transport.direct import DirectModel
+        from objcam.transport.direct import DirectModel, SplitDirect
 
-        dm = DirectModel(geo, samples, s.env_height, channels, rays=k, seed=s.seed, batch_rays=s.batch_rays,
-                         refine=s.refine, image_shape=(hp, wp))
+        # pixels that see the object: their faceted normals and its silhouette vary inside the pixel, so they get
+        # more sub-pixel samples and shadow rays (measured on the bench bunny: object-pixel error 0.87% at 32 x 4,
+        # 0.32% at 256 x 16, for ~1 s more)
+        obj_rows = samples.on_object.any(axis=1)
+        k_o = max(int(s.object_samples), 1)
+        n_o = k_o * -(-max(int(s.object_subpixel_samples), k_o) // k_o)
+        rays = [k]
+        if obj_rows.any() and (n_o > n_sub or k_o > k):
+            rows_o, rows_s = np.flatnonzero(obj_rows), np.flatnonzero(~obj_rows)
+            s_obj = primary_samples(geo, camera, f, n_o, samples.pixel_index[rows_o], wp, s.seed + 1)
+            parts = SampleParts(samples.pixel_index, [(rows_s, samples.subset(~obj_rows)), (rows_o, s_obj)])
+            rays = [k, k_o]
+            metrics.update({"object_pixels": int(rows_o.size), "object_samples": k_o,
+                            "object_subpixel_samples": n_o})
+        dm = SplitDirect([(rows, DirectModel(geo, ps, s.env_height, channels, rays=kk, seed=s.seed,
+                                             batch_rays=s.batch_rays, refine=s.refine, image_shape=(hp, wp)))
+                          for (rows, ps), kk in zip(parts.parts, rays) if rows.size], m)
         rows_per = max(1, s.pair_budget // max(1, m * grid.width))
         with bar(total=n_total, desc=f"transport: direct K={k}", unit="texel") as pb:
             for r0 in range(0, grid.height, rows_per):
@@ -142,24 +163,36 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
             metrics["mitsuba_envmap_column_offset"] = pr.column_offset
         if rep.choice != "direct":
             t1 = time.perf_counter()
-            detail = detail_pixels(samples.object_fraction(), samples.pixel_index, (hp, wp),
-                                   s.correction_detail_px)
-            corr = IndirectCorrection(pr, texel_index, s.env_height, s.correction_texel_block, s.correction_spp,
-                                      s.auto_max_depth, s.seed, s.correction_scale, detail,
-                                      s.correction_detail_spp)
-            metrics["correction_detail_pixels"] = int(detail.sum())
             writer.flush()
-            corr.compute_all()
-            add_to_columns(folder, lambda a, b: corr.columns(a, b, channels))
-            metrics["correction_renders"] = corr.renders
+            if s.indirect == "gather":
+                from objcam.transport.gather import GatherIndirect, GatherSettings
+
+                gs = GatherSettings(rays=s.gather_rays, node_rays=s.gather_node_rays, max_depth=s.auto_max_depth,
+                                    seed=s.seed)
+                gi = GatherIndirect(geo, parts, texel_index, s.env_height, channels, gs, batch_rays=s.batch_rays)
+                add_to_columns(folder, lambda a, b: gi.columns(a, b))
+                metrics.update(gi.metrics())
+            elif s.indirect == "path":
+                detail = detail_pixels(parts.object_fraction(), samples.pixel_index, (hp, wp),
+                                       s.correction_detail_px)
+                corr = IndirectCorrection(pr, texel_index, s.env_height, s.correction_texel_block,
+                                          s.correction_spp, s.auto_max_depth, s.seed, s.correction_scale, detail,
+                                          s.correction_detail_spp)
+                metrics["correction_detail_pixels"] = int(detail.sum())
+                corr.compute_all()
+                add_to_columns(folder, lambda a, b: corr.columns(a, b, channels))
+                metrics["correction_renders"] = corr.renders
+            else:
+                raise ValueError(f"unknown indirect model {s.indirect!r}")
+            metrics["indirect"] = s.indirect
             metrics["correction_seconds"] = round(time.perf_counter() - t1, 3)
 
     dirs = grid.directions().reshape(-1, 3)[texel_index].astype(np.float32)
     omega = grid.solid_angles().ravel()[texel_index].astype(np.float32)
     arrays = {"pixel_index": samples.pixel_index.astype(np.int64), "texel_index": texel_index,
-              "directions": dirs, "solid_angle": omega, "albedo": samples.albedo(),
-              "unknown_albedo": samples.unknown_albedo(), "coverage": samples.coverage(),
-              "object_fraction": samples.object_fraction()}
+              "directions": dirs, "solid_angle": omega, "albedo": parts.albedo(),
+              "unknown_albedo": parts.unknown_albedo(), "coverage": parts.coverage(),
+              "object_fraction": parts.object_fraction()}
     metrics["texels_kept"] = int(texel_index.size)
     metrics["model"] = chosen
     metrics["seconds"] = round(time.perf_counter() - t0, 3)

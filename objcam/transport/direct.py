@@ -520,3 +520,32 @@ class DirectModel:
             n_act[a:b] = np.asarray(s_act).astype(np.int64)
             n_vis[a:b] = np.asarray(s_vis).astype(np.int64)
         return num, den, n_act, n_vis
+
+
+class SplitDirect:
+    """Direct-light columns over disjoint pixel sets, each with its own DirectModel (e.g. object pixels with more
+    sub-pixel samples than the support's: their faceted normals and silhouettes vary inside a pixel).
+
+    parts: (rows, model) with ``rows`` (M_part,) positions into the M output rows; together a partition of M."""
+
+    def __init__(self, parts: list[tuple[np.ndarray, DirectModel]], m: int):
+        self.parts = [(np.asarray(r, np.int64), dm) for r, dm in parts]
+        self.m = int(m)
+
+    def columns(self, texels: np.ndarray) -> np.ndarray:
+        """(C, M, B) float32, as :meth:`DirectModel.columns`."""
+        out = None
+        for rows, dm in self.parts:
+            cols = dm.columns(texels)
+            if out is None:
+                out = np.zeros((cols.shape[0], self.m, cols.shape[2]), np.float32)
+            out[:, rows] = cols
+        return out
+
+    @property
+    def stats(self) -> DirectStats:
+        tot = DirectStats()
+        for _, dm in self.parts:
+            for f in ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined"):
+                setattr(tot, f, getattr(tot, f) + getattr(dm.stats, f))
+        return tot

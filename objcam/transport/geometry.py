@@ -160,3 +160,35 @@ def primary_samples(geo: SceneGeometry, camera: Camera, f: int, k: int, pixel_in
     shp = (m, k)
     return PixelSamples(pix, hit.reshape(shp), pos.reshape(shp + (3,)), n.reshape(shp + (3,)),
                         r.reshape(shp + (3,)), on_obj.reshape(shp), unknown.reshape(shp), d.reshape(shp + (3,)))
+
+
+@dataclass
+class SampleParts:
+    """The kept pixels' samples as disjoint parts, each a PixelSamples with its own sample count (the object's
+    pixels get more: objcam.transport.build). ``rows`` of a part are positions into ``pixel_index``."""
+
+    pixel_index: np.ndarray  # (M,)
+    parts: list  # [(rows (M_part,), PixelSamples)]
+
+    @classmethod
+    def single(cls, s: PixelSamples) -> "SampleParts":
+        return cls(s.pixel_index, [(np.arange(s.pixel_index.size), s)])
+
+    def _scatter(self, name: str) -> np.ndarray:
+        first = getattr(self.parts[0][1], name)()
+        out = np.zeros((self.pixel_index.size,) + first.shape[1:], first.dtype)
+        for rows, s in self.parts:
+            out[rows] = getattr(s, name)()
+        return out
+
+    def coverage(self) -> np.ndarray:
+        return self._scatter("coverage")
+
+    def albedo(self) -> np.ndarray:
+        return self._scatter("albedo")
+
+    def unknown_albedo(self) -> np.ndarray:
+        return self._scatter("unknown_albedo")
+
+    def object_fraction(self) -> np.ndarray:
+        return self._scatter("object_fraction")

@@ -1,0 +1,468 @@
+"""Indirect light of every column at once, without path tracing: a deterministic finite-element gather.
+
+The radiance leaving a diffuse surface point q under texel j alone, ``L_j(q) = rho_q / pi int_j V max(0, n.w)``,
+is what the direct model computes for a pixel. So the direct light of a set of surface *nodes* (every face of
+the object; on a plane support, the cells of a polar grid around the object; on any other support, its faces) is
+one more :class:`objcam.transport.direct.DirectModel` run: E (S, N) for S nodes, each averaged over a few points
+spread over its area, with the direct model's stratified shadow rays.
+
+A receiver's (a pixel's sub-pixel sample, or a node's point) first-bounce indirect light is its albedo times the
+cosine-weighted mean of L over what its hemisphere sees. The rays that estimate that mean do not depend on the
+texel, so they are traced once, and each hit is mapped to the node it lands on: a sparse *gather* matrix W with
+``L_indirect = W L`` for all N columns at once. More bounces follow on the nodes:
+``L = (I + W_QQ + W_QQ^2 + ...) E`` (``max_depth`` - 2 bounces in all, as Mitsuba's path depth counts them), and
+the pixels' indirect columns are ``W_PQ L``.
+
+Rays per receiver: inside the object's bounding sphere (the object's own points, the support beneath it)
+cosine-distributed over the hemisphere. Outside it the object fills a small cone, which hemisphere rays would
+mostly miss, so the hemisphere is partitioned exactly: uniform rays inside the cone to the bounding sphere, plus
+cosine-distributed rays whose directions outside the cone count (those inside it are dropped). On a plane support
+a receiver on the plane sees nothing outside that cone, so it traces the cone only. Every direction set is a
+Sobol sequence with a digital shift per receiver, so the estimate is quasi-Monte Carlo: no texel-dependent noise,
+and the same estimate for every column.
+
+What it does not model: light reflected by a node varies within the node only through its points' average (a
+node is one value per texel), and a receiver's rays are a finite quadrature of its hemisphere (``rays``); both
+errors are smooth in the image and shared by neighbouring columns. Unknown albedo is rendered as 1 (the transport
+convention), on the bounce surfaces too.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from objcam.scene import use_mitsuba
+from objcam.transport.geometry import PixelSamples, SampleParts, SceneGeometry
+from objcam.transport.pixels import sobol4, to_unit
+
+#: rays per Mitsuba launch of the gather
+_BATCH = 1 << 20
+
+
+@dataclass
+class GatherSettings:
+    rays: int = 256  # per pixel outside the object's bounding sphere (cone rays; spread over its samples)
+    object_rays: int = 2048  # per pixel inside it: the object and the support beneath it (hemisphere rays)
+    node_rays: int = 64  # per node (spread over its points)
+    node_points: int = 4  # points per node for its direct light (a multiple of node_shadow_rays)
+    node_shadow_rays: int = 4  # shadow rays per (node, texel) pair
+    max_depth: int = 6  # Mitsuba's path depth: 2 = direct only, 3 = one bounce, ...
+    rings_per_octave: int = 8  # plane support: polar grid rings per doubling of the radius
+    sectors: int = 64  # plane support: polar grid sectors
+    seed: int = 0
+
+
+@dataclass
+class PlaneGrid:
+    """Polar cells on the support plane z = 0 around the object: ring i spans radii [edges[i], edges[i + 1]),
+    ring 0 is the central disk; ``sectors`` equal sectors per ring (cell = ring * sectors + sector)."""
+
+    centre: np.ndarray  # (2,) metres
+    edges: np.ndarray  # (R + 1,) metres, edges[0] = 0
+    sectors: int
+
+    @property
+    def n_cells(self) -> int:
+        return (self.edges.size - 1) * self.sectors
+
+    def cell_of(self, xy: np.ndarray) -> np.ndarray:
+        """(P,) cell index of plane points (P, 2); -1 beyond the last ring."""
+        d = xy - self.centre
+        r = np.hypot(d[:, 0], d[:, 1])
+        ring = np.searchsorted(self.edges, r, side="right") - 1
+        sec = np.floor(np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi) / (2 * np.pi) * self.sectors).astype(np.int64)
+        sec = np.clip(sec, 0, self.sectors - 1)
+        return np.where(ring < self.edges.size - 1, ring * self.sectors + sec, -1)
+
+    def points(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n_cells, k, 2) area-uniform points of every cell for unit coordinates u, v (k,)."""
+        ring, sec = np.divmod(np.arange(self.n_cells), self.sectors)
+        r0, r1 = self.edges[ring], self.edges[ring + 1]
+        r = np.sqrt(r0[:, None] ** 2 + (r1[:, None] ** 2 - r0[:, None] ** 2) * u[None, :])
+        phi = 2 * np.pi * (sec[:, None] + v[None, :]) / self.sectors
+        return np.stack([self.centre[0] + r * np.cos(phi), self.centre[1] + r * np.sin(phi)], axis=-1)
+
+
+def plane_grid(geo: SceneGeometry, rings_per_octave: int, sectors: int) -> PlaneGrid:
+    """The polar grid for a plane support: from 1/16 of the object's radius (a central disk) to the farthest
+    corner of the support rectangle, rings_per_octave rings per doubling of the radius."""
+    v = geo.object_mesh.vertices.astype(np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre = 0.5 * (lo[:2] + hi[:2])
+    rad = 0.5 * float(np.linalg.norm(hi[:2] - lo[:2]))
+    x0, x1, y0, y1 = geo.plane
+    far = max(np.hypot(x - centre[0], y - centre[1]) for x in (x0, x1) for y in (y0, y1))
+    r_min = rad / 16
+    n = max(1, int(np.ceil(np.log2(max(far / r_min, 2.0)) * rings_per_octave)))
+    edges = np.concatenate([[0.0], r_min * 2.0 ** (np.arange(n + 1) / rings_per_octave)])
+    return PlaneGrid(centre, edges, int(sectors))
+
+
+@dataclass
+class Nodes:
+    """The surface nodes: object faces first (node f = object face f), then the support's (plane cells or
+    faces). ``samples`` holds each live node's points (a PixelSamples, one 'pixel' per live node); ``live`` maps a
+    node id to its row in ``samples`` (-1: no point of it exists, e.g. a cell under the object)."""
+
+    n_object: int
+    n_support: int
+    grid: PlaneGrid | None
+    samples: PixelSamples
+    live: np.ndarray  # (n_object + n_support,) int64
+    rho: np.ndarray  # (S_live, 3) mean albedo over each node's points
+
+    @property
+    def count(self) -> int:
+        return int(self.samples.hit.shape[0])
+
+
+def _shifts(keys: np.ndarray, salt: int) -> tuple[np.ndarray, np.ndarray]:
+    """Two per-key 32-bit digital shifts (a hash of key and salt)."""
+    from objcam.transport.direct import _hash_u32
+
+    k = keys.astype(np.uint64) * np.uint64(0x9E3779B1) + np.uint64((0x85EBCA77 * (salt + 1)) & 0xFFFFFFFF)
+    return _hash_u32(k).astype(np.uint32), _hash_u32(k + np.uint64(0x632BE59B)).astype(np.uint32)
+
+
+def _triangle_points(tri: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(F, k, 3) area-uniform points of triangles (F, 3, 3) for unit coordinates u, v (k,)."""
+    su = np.sqrt(u)[None, :, None]
+    a, b, c = tri[:, None, 0], tri[:, None, 1], tri[:, None, 2]
+    return (1 - su) * a + su * (1 - v[None, :, None]) * b + su * v[None, :, None] * c
+
+
+def _face_normals(mesh) -> tuple[np.ndarray, np.ndarray]:
+    v = mesh.vertices.astype(np.float64)
+    tri = v[mesh.faces.astype(np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    return tri, n
+
+
+def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
+    """Every node's points, found by casting a short ray onto each point from the side its normal faces (so the
+    point's albedo, texture included, is Mitsuba's own and a point hidden inside another surface drops out)."""
+    import drjit as dr
+
+    mi = use_mitsuba()
+    k = int(s.node_points)
+    pts = sobol4(k)
+    u, v = to_unit(pts[:, 0]), to_unit(pts[:, 1])
+    tri_o, n_o = _face_normals(geo.object_mesh)
+    p_obj = _triangle_points(tri_o, u, v)  # (F, k, 3)
+    shape_ids = [np.full(len(tri_o), geo.object_id)]
+    prims = [np.arange(len(tri_o))]
+    normals = [n_o]
+    points = [p_obj]
+    grid = None
+    if geo.plane is not None:
+        grid = plane_grid(geo, s.rings_per_octave, s.sectors)
+        xy = grid.points(u, v)
+        points.append(np.concatenate([xy, np.zeros(xy.shape[:2] + (1,))], axis=2))
+        normals.append(np.tile([0.0, 0.0, 1.0], (grid.n_cells, 1)))
+        shape_ids.append(np.full(grid.n_cells, geo.support_id))
+        prims.append(np.full(grid.n_cells, -1))
+    else:
+        tri_s, n_s = _face_normals(geo.support_mesh)
+        points.append(_triangle_points(tri_s, u, v))
+        normals.append(n_s)
+        shape_ids.append(np.full(len(tri_s), geo.support_id))
+        prims.append(np.arange(len(tri_s)))
+    P = np.concatenate(points)  # (S, k, 3)
+    Nn = np.concatenate(normals)  # (S, 3)
+    sid = np.concatenate(shape_ids)
+    prim = np.concatenate(prims)
+    n_nodes = P.shape[0]
+    h = 20.0 * geo.eps
+    o = (P + h * Nn[:, None, :]).reshape(-1, 3).astype(np.float32)
+    d = np.repeat(-Nn, k, axis=0).astype(np.float32)
+    ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+    ray.maxt = mi.Float(np.float32(2.0 * h))
+    si = geo.mi_scene.ray_intersect(ray)
+    valid = si.is_valid()
+    rho = si.bsdf().eval_diffuse_reflectance(si, valid)
+    shp = dr.reinterpret_array(mi.UInt32, si.shape)
+    dr.eval(si.p, rho, valid, shp, si.prim_index)
+    hit = np.asarray(valid, bool)
+    got_sid = np.asarray(shp, np.int64)
+    got_prim = np.asarray(si.prim_index, np.int64)
+    want_sid = np.repeat(sid, k)
+    want_prim = np.repeat(prim, k)
+    hit &= (got_sid == want_sid) & ((want_prim < 0) | (got_prim == want_prim))
+    pos = np.asarray(si.p, np.float64).T.reshape(n_nodes, k, 3)
+    r = np.asarray(rho, np.float64).T.reshape(n_nodes, k, 3)
+    hit = hit.reshape(n_nodes, k)
+    alive = hit.any(axis=1)
+    # a point that did not land (hidden, off the support) takes the place of one that did: the direct model then
+    # sees only surface points (a miss would count as sky seen along the probe ray)
+    first = np.argmax(hit, axis=1)
+    fill = ~hit & alive[:, None]
+    ni, ki = np.nonzero(fill)
+    pos[ni, ki] = pos[ni, first[ni]]
+    r[ni, ki] = r[ni, first[ni]]
+    hit = hit | fill
+    live = np.full(n_nodes, -1, np.int64)
+    live[alive] = np.arange(int(alive.sum()))
+    nrm = np.broadcast_to(Nn[:, None, :], (n_nodes, k, 3))
+    pos = np.where(hit[..., None], pos + geo.eps * nrm, 0.0)
+    r = np.where(hit[..., None], r, 0.0)
+    on_obj = np.broadcast_to((sid == geo.object_id)[:, None], (n_nodes, k)) & hit
+    unknown = (on_obj & (not geo.desc.albedo_object.known)) | (~on_obj & hit & (not geo.desc.albedo_support.known))
+    samples = PixelSamples(np.arange(int(alive.sum()), dtype=np.int64), hit[alive], pos[alive],
+                           np.where(hit[..., None], nrm, 0.0)[alive], r[alive], on_obj[alive], unknown[alive],
+                           np.broadcast_to(-Nn[:, None, :], (n_nodes, k, 3))[alive].copy())
+    nh = np.maximum(samples.hit.sum(axis=1), 1)[:, None]
+    return Nodes(len(tri_o), n_nodes - len(tri_o), grid, samples, live, samples.rho.sum(axis=1) / nh)
+
+
+def _frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents (P, 3) orthogonal to unit normals n (P, 3) (Frisvad / Duff et al.)."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return t, bt
+
+
+@dataclass
+class GatherStats:
+    rays: int = 0
+    hits: int = 0
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+class Gather:
+    """Traces the gather rays of receivers and maps their hits to nodes (see the module docstring)."""
+
+    def __init__(self, geo: SceneGeometry, nodes: Nodes, seed: int = 0):
+        self.geo, self.nodes, self.seed = geo, nodes, int(seed)
+        v = geo.object_mesh.vertices.astype(np.float64)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        self.centre = 0.5 * (lo + hi)
+        self.radius = float(np.linalg.norm(v - self.centre, axis=1).max()) * (1 + 1e-6) + 1e-9
+        self.stats = GatherStats()
+
+    def _directions(self, pos, nrm, keys, n_rays, on_plane):
+        """Per receiver n_rays directions and weights (P, R, 3), (P, R): cone rays to the object's bounding
+        sphere and/or cosine rays (see the module docstring); weight = the ray's share of the receiver's
+        cosine-weighted mean (so sum weight * L(hit) is the irradiance / pi of the surfaces hit)."""
+        P = pos.shape[0]
+        R = int(n_rays)
+        lat = sobol4(R)
+        s1, s2 = _shifts(keys, self.seed)
+        u = to_unit(lat[None, :, 0] ^ s1[:, None])
+        w = to_unit(lat[None, :, 1] ^ s2[:, None])
+        t, b = _frames(nrm)
+        vec = self.centre[None, :] - pos
+        dist = np.linalg.norm(vec, axis=1)
+        outside = dist > self.radius
+        axis = vec / np.maximum(dist, 1e-30)[:, None]
+        cos_a = np.where(outside, np.sqrt(np.clip(1 - (self.radius / np.maximum(dist, 1e-30)) ** 2, 0, 1)), -1.0)
+        cone_only = outside & on_plane
+        split = outside & ~on_plane
+        # cosine-distributed directions (Malley), used by inside and split receivers
+        r = np.sqrt(u)
+        phi = 2 * np.pi * w
+        lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.clip(1 - u, 0, 1))
+        d_cos = lx[..., None] * t[:, None, :] + ly[..., None] * b[:, None, :] + lz[..., None] * nrm[:, None, :]
+        wt_cos = np.full((P, R), 1.0 / R)
+        # cone directions (uniform in solid angle about the axis)
+        ta, ba = _frames(axis)
+        ct = 1 - u * (1 - cos_a[:, None])
+        st = np.sqrt(np.clip(1 - ct * ct, 0, 1))
+        d_cone = ((st * np.cos(phi))[..., None] * ta[:, None, :] + (st * np.sin(phi))[..., None] * ba[:, None, :]
+                  + ct[..., None] * axis[:, None, :])
+        omega = 2 * np.pi * (1 - cos_a)
+        cosn = np.einsum("prx,px->pr", d_cone, nrm)
+        d = d_cos
+        wt = wt_cos
+        if cone_only.any() or split.any():
+            d = d.copy()
+            wt = wt.copy()
+            sel = cone_only
+            d[sel] = d_cone[sel]
+            wt[sel] = np.maximum(cosn[sel], 0) * (omega[sel, None] / (np.pi * R))
+            if split.any():
+                # the first half of the rays: the cone (its own Sobol points 0 .. R/2 - 1), the second half:
+                # cosine rays counted outside the cone (points 0 .. R - R/2 - 1, another shift); each half
+                # weighted as a full estimate of its part of the hemisphere
+                idx = np.flatnonzero(split)
+                nc = R // 2
+                nh = R - nc
+                t3, t4 = _shifts(keys[idx], self.seed + 7919)
+                uh = to_unit(lat[None, :nh, 0] ^ t3[:, None])
+                vh = to_unit(lat[None, :nh, 1] ^ t4[:, None])
+                rh, ph = np.sqrt(uh), 2 * np.pi * vh
+                dh = ((rh * np.cos(ph))[..., None] * t[idx, None, :] + (rh * np.sin(ph))[..., None] * b[idx, None, :]
+                      + np.sqrt(np.clip(1 - uh, 0, 1))[..., None] * nrm[idx, None, :])
+                in_cone = np.einsum("prx,px->pr", dh, axis[idx]) > cos_a[idx, None]
+                d[idx, :nc] = d_cone[idx, :nc]
+                wt[idx, :nc] = np.maximum(cosn[idx, :nc], 0) * (omega[idx, None] / (np.pi * nc))
+                d[idx, nc:] = dh
+                wt[idx, nc:] = np.where(in_cone, 0.0, 1.0 / nh)
+        return d, wt
+
+    def matrix(self, pos: np.ndarray, nrm: np.ndarray, weight: np.ndarray, rows: np.ndarray, n_rows: int,
+               keys: np.ndarray, n_rays: int, on_plane: np.ndarray) -> sp.csr_matrix:
+        """Sparse (n_rows, S_live) gather matrix of receivers: pos, nrm (P, 3) (pos already pushed off its
+        surface), weight (P,) the receiver's share of its row (1 / its row's receiver count), rows (P,) its row,
+        keys (P,) distinct integers (seeding its directions), n_rays rays each; the receiver albedo is NOT
+        included (callers scale rows)."""
+        import drjit as dr
+
+        mi = use_mitsuba()
+        t0 = time.perf_counter()
+        nodes = self.nodes
+        out_r, out_c, out_w = [], [], []
+        per = max(1, _BATCH // max(1, n_rays))
+        for a in range(0, pos.shape[0], per):
+            b = min(pos.shape[0], a + per)
+            d, wt = self._directions(pos[a:b], nrm[a:b], keys[a:b], n_rays, on_plane[a:b])
+            keep = wt > 0
+            pi, ri = np.nonzero(keep)
+            o = pos[a:b][pi].astype(np.float32)
+            dd = d[pi, ri].astype(np.float32)
+            ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(dd[:, 0], dd[:, 1], dd[:, 2]))
+            si = self.geo.mi_scene.ray_intersect(ray)
+            valid = si.is_valid()
+            shp = dr.reinterpret_array(mi.UInt32, si.shape)
+            # only the front side of a surface reflects (Mitsuba's diffuse BSDF is one-sided)
+            front = valid & (dr.dot(si.n, ray.d) < 0)
+            dr.eval(front, shp, si.prim_index, si.p)
+            hit = np.asarray(front, bool)
+            self.stats.rays += int(pi.size)
+            sid = np.asarray(shp, np.int64)[hit]
+            prim = np.asarray(si.prim_index, np.int64)[hit]
+            node = np.full(sid.size, -1, np.int64)
+            on_o = sid == self.geo.object_id
+            node[on_o] = prim[on_o]
+            on_s = sid == self.geo.support_id
+            if nodes.grid is not None:
+                p = np.asarray(si.p, np.float64).T[hit][on_s]
+                cell = nodes.grid.cell_of(p[:, :2])
+                node[on_s] = np.where(cell >= 0, nodes.n_object + cell, -1)
+            else:
+                node[on_s] = nodes.n_object + prim[on_s]
+            ok = node >= 0
+            live = np.where(ok, nodes.live[np.maximum(node, 0)], -1)
+            ok &= live >= 0
+            hp, hr = pi[hit][ok], ri[hit][ok]
+            self.stats.hits += int(ok.sum())
+            out_r.append(rows[a:b][hp])
+            out_c.append(live[ok])
+            out_w.append(wt[hp, hr] * weight[a:b][hp])
+        r = np.concatenate(out_r) if out_r else np.zeros(0, np.int64)
+        c = np.concatenate(out_c) if out_c else np.zeros(0, np.int64)
+        w = np.concatenate(out_w) if out_w else np.zeros(0)
+        W = sp.coo_matrix((w, (r, c)), shape=(n_rows, nodes.count)).tocsr()
+        W.sum_duplicates()
+        self.stats.seconds += time.perf_counter() - t0
+        return W
+
+
+def _receivers(samples: PixelSamples, geo: SceneGeometry):
+    """Flatten the hitting samples of a PixelSamples into receivers: (pos, normal, weight, row, key, on_object,
+    on_plane, rho (P, 3))."""
+    hit = samples.hit
+    rows, ks = np.nonzero(hit)
+    k = hit.shape[1]
+    pos = samples.pos[rows, ks]
+    nrm = samples.normal[rows, ks]
+    weight = np.full(rows.size, 1.0 / k)  # a row is the mean over its k samples (misses add no indirect light)
+    on_obj = samples.on_object[rows, ks]
+    on_plane = ~on_obj & (geo.plane is not None)
+    keys = samples.pixel_index[rows].astype(np.int64) * k + ks
+    return pos, nrm, weight, rows, keys, on_obj, on_plane, samples.rho[rows, ks]
+
+
+def gather_matrices(gather: Gather, samples: PixelSamples, rays: int, object_rays: int, channels: int,
+                    salt: int) -> list[sp.csr_matrix]:
+    """Per channel (1 or 3) the gather matrix of ``samples``' rows with the receivers' albedo in it: ``rays``
+    per row outside the object's bounding sphere, ``object_rays`` for rows inside it (spread over a row's
+    samples)."""
+    pos, nrm, weight, rows, keys, on_obj, on_plane, rho = _receivers(samples, gather.geo)
+    k = samples.hit.shape[1]
+    keys = keys * 2 + salt
+    # rows with a receiver inside the object's bounding sphere sample the whole hemisphere, where most of the
+    # indirect light is (the object lit by the support, the support beneath the object)
+    inside = np.linalg.norm(pos - gather.centre, axis=1) <= gather.radius
+    row_obj = np.zeros(samples.hit.shape[0], bool)
+    row_obj[rows[inside | on_obj]] = True
+    groups = [(sel, max(1, -(-int(n) // k))) for sel, n in ((row_obj[rows], object_rays), (~row_obj[rows], rays))]
+    ch = [rho.mean(axis=1)] if channels == 1 else [rho[:, c] for c in range(3)]
+    out = []
+    for r in ch:
+        # the same rays for every channel (same keys); only the albedo weights differ
+        W = None
+        for sel, n in groups:
+            if sel.any():
+                Wg = gather.matrix(pos[sel], nrm[sel], (weight * r)[sel], rows[sel], samples.hit.shape[0],
+                                   keys[sel], n, on_plane[sel])
+                W = Wg if W is None else W + Wg
+        out.append((W if W is not None else sp.csr_matrix((samples.hit.shape[0], gather.nodes.count)))
+                   .astype(np.float32))
+    return out
+
+
+class GatherIndirect:
+    """Indirect-light columns of A for the pixels of ``pixels`` by the node gather (module docstring)."""
+
+    def __init__(self, geo: SceneGeometry, pixels: SampleParts | PixelSamples, texel_index: np.ndarray,
+                 env_height: int, channels: int, settings: GatherSettings | None = None, batch_rays: int = 1 << 24):
+        from objcam.transport.direct import DirectModel
+
+        s = settings or GatherSettings()
+        self.s, self.channels = s, int(channels)
+        self.texel_index = np.asarray(texel_index, np.int64)
+        t0 = time.perf_counter()
+        self.nodes = surface_nodes(geo, s)
+        self.gather = Gather(geo, self.nodes, s.seed)
+        self.bounces = max(0, int(s.max_depth) - 3) if s.max_depth >= 0 else 8
+        parts = pixels if isinstance(pixels, SampleParts) else SampleParts.single(pixels)
+        m = parts.pixel_index.size
+        self.W_pix = None
+        for rows, ps in parts.parts:
+            # a part's rows scattered into the M kept pixels
+            place = sp.csr_matrix((np.ones(rows.size, np.float32), (rows, np.arange(rows.size))),
+                                  shape=(m, rows.size))
+            Ws = [(place @ W).tocsr() for W in gather_matrices(self.gather, ps, s.rays, s.object_rays,
+                                                               self.channels, salt=0)]
+            self.W_pix = Ws if self.W_pix is None else [a + b for a, b in zip(self.W_pix, Ws)]
+        self.W_node = gather_matrices(self.gather, self.nodes.samples, s.node_rays, s.node_rays, self.channels,
+                                      salt=1) if self.bounces else None
+        self.dm = DirectModel(geo, self.nodes.samples, env_height, self.channels, rays=s.node_shadow_rays,
+                              seed=s.seed + 1, batch_rays=batch_rays, refine=False)
+        self.seconds_setup = time.perf_counter() - t0
+        self.seconds_columns = 0.0
+
+    def columns(self, a: int, b: int, channels: int | None = None) -> np.ndarray:
+        """(C, M, b - a) float32 indirect light of kept texels a .. b - 1 (positions into texel_index)."""
+        t0 = time.perf_counter()
+        tex = self.texel_index[a:b]
+        E = self.dm.columns(tex)  # (C, S, B): direct light leaving each node
+        out = []
+        for c in range(self.channels):
+            L = E[c]
+            acc = L.copy()
+            for _ in range(self.bounces):
+                L = self.W_node[c] @ L
+                acc += L
+            out.append(self.W_pix[c] @ acc)
+        self.seconds_columns += time.perf_counter() - t0
+        return np.stack(out).astype(np.float32)
+
+    def metrics(self) -> dict:
+        n = self.nodes
+        return {"gather_nodes": n.count, "gather_nodes_object": int((n.live[:n.n_object] >= 0).sum()),
+                "gather_rays": self.gather.stats.rays, "gather_hits": self.gather.stats.hits,
+                "gather_nnz_pixels": int(self.W_pix[0].nnz),
+                "gather_nnz_nodes": int(self.W_node[0].nnz) if self.W_node else 0,
+                "gather_bounces": self.bounces + 1, "gather_setup_seconds": round(self.seconds_setup, 3),
+                "gather_columns_seconds": round(self.seconds_columns, 3),
+                "gather_node_direct_rays": self.dm.stats.rays_traced}

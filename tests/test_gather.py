@@ -1,0 +1,93 @@
+"""Indirect light by the node gather (objcam.transport.gather): its quadrature against the analytic view of a
+sphere, its node grid, and its columns against Mitsuba's path tracer (light of two and more bounces)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from objcam.scene import SceneDescription
+from objcam.transport.auto import indirect_render
+from objcam.transport.gather import Gather, GatherIndirect, GatherSettings, surface_nodes
+from objcam.transport.geometry import SceneGeometry, primary_samples
+from objcam.transport.path import PathRenderer
+from tests.test_transport import ENV_H, R, SIZE, _write_artifact
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("gather")
+    cam = _write_artifact(folder)
+    desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
+    geo = SceneGeometry.load(desc, folder, env_height=ENV_H)
+    s = primary_samples(geo, cam, 1, 16, np.arange(SIZE * SIZE), SIZE, seed=0)
+    return geo, cam, s.subset(s.hit.any(axis=1))
+
+
+def test_directions_integrate_the_view_of_the_sphere(scene):
+    """sum of the ray weights that hit the object's bounding sphere = (1/pi) int_cone cos = sin^2(a) cos(b) for a
+    sphere of angular radius a whose centre is b from the normal (wholly above the horizon), for the three ways a
+    receiver samples: the cone alone, the cone plus outside-cone cosine rays, the plain hemisphere."""
+    geo, _, _ = scene
+    nodes = surface_nodes(geo, GatherSettings())
+    g = Gather(geo, nodes)
+    c, rad = g.centre, g.radius
+    # receivers on the plane at distance 3 R from the centre's foot, normals up or tilted towards the sphere
+    pos = np.array([[3 * R, 0.0, 0.0], [0.0, -4 * R, 0.0], [2.5 * R, 2.5 * R, 0.0]]) + np.array([c[0], c[1], 0])
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 0.95], [-0.2, -0.2, 0.96]])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    vec = c - pos
+    dist = np.linalg.norm(vec, axis=1)
+    want = (rad / dist) ** 2 * np.einsum("px,px->p", vec / dist[:, None], nrm)
+    keys = np.arange(3)
+    for on_plane, n_rays, tol in ((np.ones(3, bool), 256, 2e-3), (np.zeros(3, bool), 512, 5e-3)):
+        d, wt = g._directions(pos, nrm, keys, n_rays, on_plane)
+        hits = np.einsum("prx,px->pr", d, vec / dist[:, None]) > np.sqrt(1 - (rad / dist[:, None]) ** 2)
+        got = (wt * hits).sum(axis=1)
+        assert np.allclose(got, want, rtol=tol), (on_plane[0], got, want)
+    # inside the sphere every receiver samples the cosine-weighted hemisphere: the weights sum to 1
+    d, wt = g._directions(c[None] + 0.1 * rad, np.array([[0.0, 0.0, 1.0]]), keys[:1], 64, np.zeros(1, bool))
+    assert wt.sum() == pytest.approx(1.0) and np.all(d[0] @ [0, 0, 1] > 0)
+
+
+def test_plane_cells_hold_their_points(scene):
+    geo, _, _ = scene
+    nodes = surface_nodes(geo, GatherSettings(node_points=8, node_shadow_rays=4))
+    grid = nodes.grid
+    assert nodes.n_object == len(geo.object_mesh.faces) and nodes.n_support == grid.n_cells
+    u = np.linspace(0.05, 0.95, 5)
+    pts = grid.points(u, u[::-1])
+    cells = grid.cell_of(pts.reshape(-1, 2)).reshape(pts.shape[:2])
+    assert np.array_equal(cells, np.repeat(np.arange(grid.n_cells)[:, None], 5, axis=1))
+    # the grid reaches the plane's farthest corner; cells under the sphere's contact point still exist
+    assert grid.edges[-1] >= np.hypot(1.0, 1.0) - 1e-9
+    assert (nodes.live >= 0).sum() == nodes.count > 0.9 * (nodes.n_object + nodes.n_support)
+
+
+@pytest.mark.parametrize("max_depth", [3, 6])
+def test_columns_match_path_traced_indirect_light(scene, max_depth):
+    """Per texel, the gathered indirect light of every pixel against path(max_depth) - path(2) rendered with the
+    same seed (two seeds, so the renders' own noise is taken out of the error)."""
+    geo, cam, s = scene
+    grid_w = 2 * ENV_H
+    texels = np.array([1 * grid_w + 3, 2 * grid_w + 9, 3 * grid_w + 14])
+    gi = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(max_depth=max_depth, rays=256, object_rays=1024))
+    cols = gi.columns(0, texels.size)[0]
+    assert cols.shape == (s.pixel_index.size, texels.size) and np.all(cols >= 0)
+    pr = PathRenderer(geo, cam, 1, s.pixel_index, ENV_H)
+    spp = 512
+    for b, j in enumerate(texels):
+        env = pr.onehot([j])
+        r1 = indirect_render(pr, env, spp, max_depth, seed=11, scale=1).mean(axis=1)
+        r2 = indirect_render(pr, env, spp, max_depth, seed=12, scale=1).mean(axis=1)
+        ref = 0.5 * (r1 + r2)
+        noise = np.linalg.norm(r1 - r2) / 2
+        err = np.sqrt(max(np.linalg.norm(cols[:, b] - ref) ** 2 - noise**2, 0.0)) / np.linalg.norm(ref)
+        assert err < 0.05, (j, err, noise / np.linalg.norm(ref))
+        assert cols[:, b].sum() == pytest.approx(ref.sum(), rel=0.03)
+    # deterministic: the same settings give the same columns
+    again = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(max_depth=max_depth, rays=256,
+                                                                     object_rays=1024)).columns(0, texels.size)[0]
+    assert np.array_equal(cols, again)
+    m = gi.metrics()
+    assert m["gather_bounces"] == max_depth - 2 and m["gather_hits"] > 0
