@@ -96,6 +96,9 @@ class FullSynthParams(BaseModel):
     probe: bool = Field(True, description="photograph a chrome ball per illumination ([[probes]])")
     probe_diameter: float = Field(0.05, gt=0, description="chrome ball diameter, metres")
     probe_spp: int = Field(32, ge=1, description="samples per pixel of the chrome-ball frames")
+    probe_centre_known: bool = Field(True, description="the ball sits on the board's centre mark and the manifest "
+                                     "gives its centre (issue 5's protocol; found by the probe stage otherwise: on "
+                                     "a busy board a ball under ~150 px is hard to tell from the print)")
     probe_bracket_frames: int = Field(7, ge=1, le=16, description="frames per chrome-ball bracket")
     iso: float = Field(100.0, gt=0)
     f_number: float = Field(8.0, gt=0)
@@ -408,4 +411,6 @@ def _write_manifest(out: Path, params: FullSynthParams, targets: list[tuple[str,
         for name, _ in targets:
             lines += ["", "[[probes]]", f'name = "{name}"', f'folder = "probes/{name}"',
                       f"diameter = {_toml(params.probe_diameter)}"]
+            if params.probe_centre_known:
+                lines.append(f"centre = {_toml([0.0, 0.0, params.probe_diameter / 2])}")
     atomic_write_text(out / "capture.toml", "\n".join(lines) + "\n")

@@ -3,7 +3,7 @@ tests/test_synth_full.py and tests/test_sfm_stage.py: the first test that asks r
 the others find it in the session's base temporary folder.
 
 10 DNG views at 320 x 240 (16 spp) on two rings, one target (3-frame bracket, 16 spp, 3 bounces) and one chrome
-ball (3 frames), noise on.
+ball (12 cm, so that it spans ~75 px of the 320 px frame: the probe stage needs 60; 3 frames), noise on.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 
 SMALL_FULL = dict(n_views=10, width=320, height=240, view_spp=16, target_spp=16, max_depth=3, probe_spp=8,
                   view_distance=0.5, fov_deg=60.0, elevations_deg=[35.0, 55.0], target_distance=0.45,
-                  bracket_frames=3, probe_bracket_frames=3)
+                  bracket_frames=3, probe_bracket_frames=3, probe_diameter=0.12)
 
 
 def small_full_capture(tmp_path_factory) -> Path:

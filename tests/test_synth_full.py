@@ -26,7 +26,8 @@ def test_manifest_validates(capture):
     assert m.camera.white_balance == "camera" and m.camera.demosaic == "superpixel"
     assert [t.name for t in m.targets] == ["t0"] and m.targets[0].folder == "targets/t0"
     assert m.targets[0].camera is None and m.targets[0].image is None
-    assert [(p.name, p.diameter, p.centre) for p in m.probes] == [("t0", 0.05, None)]
+    assert [(p.name, p.diameter, p.centre) for p in m.probes] == [("t0", SMALL_FULL["probe_diameter"],
+                                                                  (0.0, 0.0, SMALL_FULL["probe_diameter"] / 2))]
     assert m.scene.object == "object.ply"
     assert len(list((capture / "views").glob("*.dng"))) == SMALL_FULL["n_views"]
     assert len(list((capture / "targets" / "t0").glob("*.dng"))) == SMALL_FULL["bracket_frames"]
@@ -92,7 +93,7 @@ def test_truth_cameras_and_object_pose(capture):
     assert hi[2] - lo[2] == pytest.approx(80.0, rel=1e-3)  # 8 cm in millimetres
     assert np.allclose((lo + hi) / 2, 0.0, atol=1e-3)
     assert world.vertices[:, 2].min() == pytest.approx(0.0, abs=1e-7)
-    assert truth["probes"]["t0"]["centre"] == [0.0, 0.0, 0.025]
+    assert truth["probes"]["t0"]["centre"] == [0.0, 0.0, SMALL_FULL["probe_diameter"] / 2]
     assert (capture / truth["envmaps"]["t0"]).is_file()
 
 

@@ -30,7 +30,7 @@ convention), on the bounce surfaces too.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -234,7 +234,6 @@ class GatherStats:
     rays: int = 0
     hits: int = 0
     seconds: float = 0.0
-    extra: dict = field(default_factory=dict)
 
 
 class Gather:
