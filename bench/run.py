@@ -210,7 +210,10 @@ def main(argv=None) -> int:
     report = render_markdown(a_rows, rows, hdris, target_spp, ref, args)
     args.results.parent.mkdir(parents=True, exist_ok=True)
     write_section("core", report, CORE_TITLE, args.results)
-    (args.out / "results.json").write_text(json.dumps({"transport": a_rows, "solve": rows}, indent=2, default=float))
+    data = json.dumps({"transport": a_rows, "solve": rows}, indent=2, default=float)
+    (args.out / "results.json").write_text(data)
+    # committed beside results.md: the report's speed-against-error plot reads it (objcam.report.speed)
+    args.results.with_suffix(".json").write_text(data)
     print(report)
     return 0
 
