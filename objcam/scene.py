@@ -149,11 +149,13 @@ class SceneDescription(BaseModel):
         return True
 
 
-def _bsdf(mi, albedo: AlbedoValue, root: Path, unknown_value: float, channel: int | None):
-    if albedo.texture is not None:
+def _bsdf(mi, albedo: AlbedoValue, root: Path, unknown_value: float, channel: int | None,
+          initial: bool = False):
+    texture = albedo.texture if albedo.texture is not None else (albedo.initial if initial else None)
+    if texture is not None:
         from objcam.image_io import read_exr
 
-        tex = read_exr(root / albedo.texture)[..., :3]
+        tex = read_exr(root / texture)[..., :3]
         if tex.shape[2] == 1:
             tex = np.repeat(tex, 3, axis=2)
         if channel is not None:
@@ -184,11 +186,13 @@ def mitsuba_mesh(mi, name: str, mesh: MeshData, bsdf):
 
 
 def build_mitsuba_scene(desc: SceneDescription, root: str | Path, envmap: np.ndarray | None = None,
-                        unknown_albedo: float = 1.0, channel: int | None = None, extra: dict | None = None):
+                        unknown_albedo: float = 1.0, channel: int | None = None, extra: dict | None = None,
+                        initial: bool = False):
     """The Mitsuba scene of ``desc`` (files relative to ``root``).
 
     envmap: optional (H, 2H, 3) radiance in objcam's lat-long convention, added as the ``envmap`` emitter.
-    unknown_albedo: the albedo rendered where the description says it is unknown.
+    unknown_albedo: the albedo rendered where the description says it is unknown; with ``initial``, an unknown
+    albedo's ``initial`` estimate (texture) where it has one.
     channel: if set, every albedo takes that colour channel's value (grey render of one channel).
     extra: more entries for the scene dict (sensor, integrator, extra shapes).
     """
@@ -199,8 +203,10 @@ def build_mitsuba_scene(desc: SceneDescription, root: str | Path, envmap: np.nda
     obj = MeshData.load_npz(root / desc.object_mesh)
     sup = MeshData.load_npz(root / desc.support_mesh)
     d: dict = {"type": "scene"}
-    d["object"] = mitsuba_mesh(mi, "object", obj, _bsdf(mi, desc.albedo_object, root, unknown_albedo, channel))
-    d["support"] = mitsuba_mesh(mi, "support", sup, _bsdf(mi, desc.albedo_support, root, unknown_albedo, channel))
+    d["object"] = mitsuba_mesh(mi, "object", obj, _bsdf(mi, desc.albedo_object, root, unknown_albedo, channel,
+                                                        initial))
+    d["support"] = mitsuba_mesh(mi, "support", sup, _bsdf(mi, desc.albedo_support, root, unknown_albedo, channel,
+                                                          initial))
     if envmap is not None:
         d["emitter"] = {
             "type": "envmap",

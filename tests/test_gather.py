@@ -91,3 +91,28 @@ def test_columns_match_path_traced_indirect_light(scene, max_depth):
     assert np.array_equal(cols, again)
     m = gi.metrics()
     assert m["gather_bounces"] == max_depth - 2 and m["gather_hits"] > 0
+
+
+def test_unknown_support_reflects_with_its_bounce_albedo(tmp_path):
+    """A support of unknown albedo is a receiver at albedo 1 (A = diag(rho) A') but lights the object with
+    UNKNOWN_BOUNCE_ALBEDO: the columns equal those of the same scene with that albedo known, the support's rows
+    divided by it."""
+    from objcam.transport.gather import UNKNOWN_BOUNCE_ALBEDO as RHO
+
+    cols = {}
+    for name, sup in (("unknown", None), ("known", (RHO, RHO, RHO))):
+        folder = tmp_path / name
+        cam = _write_artifact(folder, sup=sup)
+        desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
+        geo = SceneGeometry.load(desc, folder, env_height=ENV_H)
+        s = primary_samples(geo, cam, 1, 16, np.arange(SIZE * SIZE), SIZE, seed=0)
+        s = s.subset(s.hit.any(axis=1))
+        texels = np.array([1 * 2 * ENV_H + 3, 3 * 2 * ENV_H + 14])
+        gi = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(rays=64, object_rays=256))
+        # pixels wholly on the object, wholly on the support (mixed ones are a blend of both rules)
+        cols[name] = (gi.columns(0, texels.size)[0], (s.on_object & s.hit).all(axis=1),
+                      (~s.on_object & s.hit).all(axis=1))
+    (u, obj, sup), (k, _, _) = cols["unknown"], cols["known"]
+    assert np.allclose(u[obj], k[obj], rtol=1e-4, atol=1e-9)
+    assert np.allclose(u[sup] * RHO, k[sup], rtol=1e-4, atol=1e-9)
+    assert u[obj].sum() > 0 and u[sup].sum() > 0

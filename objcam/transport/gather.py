@@ -24,7 +24,9 @@ and the same estimate for every column.
 What it does not model: light reflected by a node varies within the node only through its points' average (a
 node is one value per texel), and a receiver's rays are a finite quadrature of its hemisphere (``rays``); both
 errors are smooth in the image and shared by neighbouring columns. Unknown albedo is rendered as 1 (the transport
-convention), on the bounce surfaces too.
+convention) where it is the receiver's (A = diag(rho) A' stays exact for the receiving pixel); where a surface of
+unknown albedo reflects light onto others it takes its initial estimate (photogrammetry's texture) or
+:data:`UNKNOWN_BOUNCE_ALBEDO`.
 """
 
 from __future__ import annotations
@@ -41,6 +43,11 @@ from objcam.transport.pixels import sobol4, to_unit
 
 #: rays per Mitsuba launch of the gather
 _BATCH = 1 << 20
+#: the albedo a surface of unknown albedo (without an initial estimate) reflects light with, when it lights others:
+#: the joint solve's starting albedo (objcam.solvers.joint.DEFAULT_RHO0). A receiver's own albedo stays factored
+#: out (A = diag(rho) A'), but the bounce surface's enters the indirect light; rendering it as 1, as the direct
+#: part does, made the light the support throws on the object ~2x too bright on a 0.55-albedo support.
+UNKNOWN_BOUNCE_ALBEDO = 0.5
 
 
 @dataclass
@@ -195,6 +202,16 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     hit &= (got_sid == want_sid) & ((want_prim < 0) | (got_prim == want_prim))
     pos = np.asarray(si.p, np.float64).T.reshape(n_nodes, k, 3)
     r = np.asarray(rho, np.float64).T.reshape(n_nodes, k, 3)
+    if not (geo.desc.albedo_object.known and geo.desc.albedo_support.known):
+        # the albedo the nodes reflect with: unknown ones at their initial estimate or UNKNOWN_BOUNCE_ALBEDO (the
+        # same rays on a scene that renders them so; same geometry, so the same hits)
+        from objcam.scene import build_mitsuba_scene
+
+        bounce = build_mitsuba_scene(geo.desc, geo.root, unknown_albedo=UNKNOWN_BOUNCE_ALBEDO, initial=True)
+        si_b = bounce.ray_intersect(ray)
+        rho_b = si_b.bsdf().eval_diffuse_reflectance(si_b, si_b.is_valid())
+        dr.eval(rho_b)
+        r = np.asarray(rho_b, np.float64).T.reshape(n_nodes, k, 3)
     hit = hit.reshape(n_nodes, k)
     alive = hit.any(axis=1)
     # a point that did not land (hidden, off the support) takes the place of one that did: the direct model then
