@@ -64,14 +64,18 @@ def test_plane_cells_hold_their_points(scene):
     assert (nodes.live >= 0).sum() == nodes.count > 0.9 * (nodes.n_object + nodes.n_support)
 
 
-@pytest.mark.parametrize("max_depth", [3, 6])
-def test_columns_match_path_traced_indirect_light(scene, max_depth):
+@pytest.mark.parametrize("max_depth, max_nodes", [(3, 12000), (6, 12000), (6, 300)])
+def test_columns_match_path_traced_indirect_light(scene, max_depth, max_nodes):
     """Per texel, the gathered indirect light of every pixel against path(max_depth) - path(2) rendered with the
-    same seed (two seeds, so the renders' own noise is taken out of the error)."""
+    same seed (two seeds, so the renders' own noise is taken out of the error); max_nodes 300: the sphere's 1,280
+    faces gathered in clusters."""
     geo, cam, s = scene
     grid_w = 2 * ENV_H
     texels = np.array([1 * grid_w + 3, 2 * grid_w + 9, 3 * grid_w + 14])
-    gi = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(max_depth=max_depth, rays=256, object_rays=1024))
+    gs = GatherSettings(max_depth=max_depth, rays=256, object_rays=1024, max_mesh_nodes=max_nodes)
+    gi = GatherIndirect(geo, s, texels, ENV_H, 1, gs)
+    if max_nodes < len(geo.object_mesh.faces):
+        assert gi.nodes.n_object < len(geo.object_mesh.faces) / 2
     cols = gi.columns(0, texels.size)[0]
     assert cols.shape == (s.pixel_index.size, texels.size) and np.all(cols >= 0)
     pr = PathRenderer(geo, cam, 1, s.pixel_index, ENV_H)
@@ -86,11 +90,25 @@ def test_columns_match_path_traced_indirect_light(scene, max_depth):
         assert err < 0.05, (j, err, noise / np.linalg.norm(ref))
         assert cols[:, b].sum() == pytest.approx(ref.sum(), rel=0.03)
     # deterministic: the same settings give the same columns
-    again = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(max_depth=max_depth, rays=256,
-                                                                     object_rays=1024)).columns(0, texels.size)[0]
+    again = GatherIndirect(geo, s, texels, ENV_H, 1, gs).columns(0, texels.size)[0]
     assert np.array_equal(cols, again)
     m = gi.metrics()
     assert m["gather_bounces"] == max_depth - 2 and m["gather_hits"] > 0
+
+
+def test_face_clusters_keep_sides_apart(scene):
+    from objcam.transport.gather import _face_normals, face_clusters
+
+    geo, _, _ = scene
+    tri, n = _face_normals(geo.object_mesh)
+    same, count = face_clusters(tri, n, 10 * len(tri))
+    assert count == len(tri) and np.array_equal(same, np.arange(len(tri)))
+    node, count = face_clusters(tri, n, 200)
+    assert 50 < count <= 400 and node.max() == count - 1
+    for j in range(count):  # every cluster's normals lie within 90 degrees of their mean
+        m = n[node == j]
+        mean = m.sum(axis=0) / np.linalg.norm(m.sum(axis=0))
+        assert np.all(m @ mean > 0)
 
 
 def test_unknown_support_reflects_with_its_bounce_albedo(tmp_path):

@@ -58,6 +58,7 @@ class GatherSettings:
     node_points: int = 4  # points per node for its direct light (a multiple of node_shadow_rays)
     node_shadow_rays: int = 4  # shadow rays per (node, texel) pair
     max_depth: int = 6  # Mitsuba's path depth: 2 = direct only, 3 = one bounce, ...
+    max_mesh_nodes: int = 12000  # a mesh with more faces gets face clusters as nodes (voxel x normal buckets)
     rings_per_octave: int = 8  # plane support: polar grid rings per doubling of the radius
     sectors: int = 64  # plane support: polar grid sectors
     seed: int = 0
@@ -111,12 +112,14 @@ def plane_grid(geo: SceneGeometry, rings_per_octave: int, sectors: int) -> Plane
 
 @dataclass
 class Nodes:
-    """The surface nodes: object faces first (node f = object face f), then the support's (plane cells or
-    faces). ``samples`` holds each live node's points (a PixelSamples, one 'pixel' per live node); ``live`` maps a
+    """The surface nodes: the object's faces (or clusters of them) first, then the support's (plane cells, or
+    faces or face clusters). ``samples`` holds each live node's points (a PixelSamples, one 'pixel' per live node); ``live`` maps a
     node id to its row in ``samples`` (-1: no point of it exists, e.g. a cell under the object)."""
 
     n_object: int
     n_support: int
+    object_face_node: np.ndarray  # (F_object,) node of each object face
+    support_face_node: np.ndarray | None  # (F_support,) node (after the object's) of each support face; None: grid
     grid: PlaneGrid | None
     samples: PixelSamples
     live: np.ndarray  # (n_object + n_support,) int64
@@ -135,19 +138,51 @@ def _shifts(keys: np.ndarray, salt: int) -> tuple[np.ndarray, np.ndarray]:
     return _hash_u32(k).astype(np.uint32), _hash_u32(k + np.uint64(0x632BE59B)).astype(np.uint32)
 
 
-def _triangle_points(tri: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(F, k, 3) area-uniform points of triangles (F, 3, 3) for unit coordinates u, v (k,)."""
-    su = np.sqrt(u)[None, :, None]
-    a, b, c = tri[:, None, 0], tri[:, None, 1], tri[:, None, 2]
-    return (1 - su) * a + su * (1 - v[None, :, None]) * b + su * v[None, :, None] * c
-
-
 def _face_normals(mesh) -> tuple[np.ndarray, np.ndarray]:
     v = mesh.vertices.astype(np.float64)
     tri = v[mesh.faces.astype(np.int64)]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     return tri, n
+
+
+def face_clusters(tri: np.ndarray, normals: np.ndarray, max_nodes: int) -> tuple[np.ndarray, int]:
+    """(F,) node of each face and the node count: one node per face up to ``max_nodes`` faces; beyond, faces are
+    grouped by the cubic cell of their centroid (cell side from the surface area, so about max_nodes / 2 cells
+    are occupied) and the axis their normal is closest to (6 buckets, so a node never mixes opposite sides)."""
+    f = tri.shape[0]
+    if f <= max_nodes:
+        return np.arange(f), f
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    side = np.sqrt(area.sum() / max(1, max_nodes // 2))
+    c = tri.mean(axis=1)
+    cell = np.floor((c - c.min(axis=0)) / side).astype(np.int64)
+    ax = np.argmax(np.abs(normals), axis=1)
+    bucket = 2 * ax + (normals[np.arange(f), ax] < 0)
+    key = np.concatenate([cell, bucket[:, None]], axis=1)
+    _, node = np.unique(key, axis=0, return_inverse=True)
+    return node.ravel(), int(node.max()) + 1
+
+
+def _node_points(tri: np.ndarray, normals: np.ndarray, face_node: np.ndarray, n_nodes: int, u: np.ndarray,
+                 v: np.ndarray, w: np.ndarray):
+    """Per node k area-uniform points over its faces: points (S, k, 3), their faces' normals (S, k, 3) and faces
+    (S, k), from unit coordinates u, v (point in the face) and w (which face, by area) (k,)."""
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    order = np.argsort(face_node, kind="stable")
+    fn = face_node[order]
+    cum = np.cumsum(area[order])
+    start = np.searchsorted(fn, np.arange(n_nodes))
+    end = np.searchsorted(fn, np.arange(n_nodes), side="right")
+    base = np.where(start > 0, cum[np.maximum(start - 1, 0)], 0.0)
+    total = cum[end - 1] - base
+    target = base[:, None] + total[:, None] * w[None, :]
+    pick = np.clip(np.searchsorted(cum, target), start[:, None], end[:, None] - 1)
+    faces = order[pick]  # (S, k)
+    su = np.sqrt(u)[None, :, None]
+    t = tri[faces]  # (S, k, 3, 3)
+    pts = (1 - su) * t[:, :, 0] + su * (1 - v[None, :, None]) * t[:, :, 1] + su * v[None, :, None] * t[:, :, 2]
+    return pts, normals[faces], faces
 
 
 def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
@@ -159,34 +194,39 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     k = int(s.node_points)
     pts = sobol4(k)
     u, v = to_unit(pts[:, 0]), to_unit(pts[:, 1])
+    w = to_unit(pts[:, 2])
     tri_o, n_o = _face_normals(geo.object_mesh)
-    p_obj = _triangle_points(tri_o, u, v)  # (F, k, 3)
-    shape_ids = [np.full(len(tri_o), geo.object_id)]
-    prims = [np.arange(len(tri_o))]
-    normals = [n_o]
+    obj_node, n_obj = face_clusters(tri_o, n_o, s.max_mesh_nodes)
+    p_obj, nn_obj, f_obj = _node_points(tri_o, n_o, obj_node, n_obj, u, v, w)
+    shape_ids = [np.full(n_obj, geo.object_id)]
+    prims = [f_obj]
+    normals = [nn_obj]
     points = [p_obj]
     grid = None
+    sup_node = None
     if geo.plane is not None:
         grid = plane_grid(geo, s.rings_per_octave, s.sectors)
         xy = grid.points(u, v)
         points.append(np.concatenate([xy, np.zeros(xy.shape[:2] + (1,))], axis=2))
-        normals.append(np.tile([0.0, 0.0, 1.0], (grid.n_cells, 1)))
+        normals.append(np.broadcast_to([0.0, 0.0, 1.0], (grid.n_cells, k, 3)))
         shape_ids.append(np.full(grid.n_cells, geo.support_id))
-        prims.append(np.full(grid.n_cells, -1))
+        prims.append(np.full((grid.n_cells, k), -1))
     else:
         tri_s, n_s = _face_normals(geo.support_mesh)
-        points.append(_triangle_points(tri_s, u, v))
-        normals.append(n_s)
-        shape_ids.append(np.full(len(tri_s), geo.support_id))
-        prims.append(np.arange(len(tri_s)))
+        sup_node, n_sup = face_clusters(tri_s, n_s, s.max_mesh_nodes)
+        p_s, nn_s, f_s = _node_points(tri_s, n_s, sup_node, n_sup, u, v, w)
+        points.append(p_s)
+        normals.append(nn_s)
+        shape_ids.append(np.full(n_sup, geo.support_id))
+        prims.append(f_s)
     P = np.concatenate(points)  # (S, k, 3)
-    Nn = np.concatenate(normals)  # (S, 3)
+    Nn = np.concatenate(normals)  # (S, k, 3)
     sid = np.concatenate(shape_ids)
-    prim = np.concatenate(prims)
+    prim = np.concatenate(prims)  # (S, k)
     n_nodes = P.shape[0]
     h = 20.0 * geo.eps
-    o = (P + h * Nn[:, None, :]).reshape(-1, 3).astype(np.float32)
-    d = np.repeat(-Nn, k, axis=0).astype(np.float32)
+    o = (P + h * Nn).reshape(-1, 3).astype(np.float32)
+    d = (-Nn).reshape(-1, 3).astype(np.float32)
     ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
     ray.maxt = mi.Float(np.float32(2.0 * h))
     si = geo.mi_scene.ray_intersect(ray)
@@ -198,7 +238,7 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     got_sid = np.asarray(shp, np.int64)
     got_prim = np.asarray(si.prim_index, np.int64)
     want_sid = np.repeat(sid, k)
-    want_prim = np.repeat(prim, k)
+    want_prim = prim.ravel()
     hit &= (got_sid == want_sid) & ((want_prim < 0) | (got_prim == want_prim))
     pos = np.asarray(si.p, np.float64).T.reshape(n_nodes, k, 3)
     r = np.asarray(rho, np.float64).T.reshape(n_nodes, k, 3)
@@ -219,21 +259,21 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     first = np.argmax(hit, axis=1)
     fill = ~hit & alive[:, None]
     ni, ki = np.nonzero(fill)
-    pos[ni, ki] = pos[ni, first[ni]]
-    r[ni, ki] = r[ni, first[ni]]
+    nrm = np.array(Nn, dtype=np.float64)  # (S, k, 3), writable
+    for arr in (pos, r, nrm):
+        arr[ni, ki] = arr[ni, first[ni]]
     hit = hit | fill
     live = np.full(n_nodes, -1, np.int64)
     live[alive] = np.arange(int(alive.sum()))
-    nrm = np.broadcast_to(Nn[:, None, :], (n_nodes, k, 3))
     pos = np.where(hit[..., None], pos + geo.eps * nrm, 0.0)
     r = np.where(hit[..., None], r, 0.0)
     on_obj = np.broadcast_to((sid == geo.object_id)[:, None], (n_nodes, k)) & hit
     unknown = (on_obj & (not geo.desc.albedo_object.known)) | (~on_obj & hit & (not geo.desc.albedo_support.known))
     samples = PixelSamples(np.arange(int(alive.sum()), dtype=np.int64), hit[alive], pos[alive],
                            np.where(hit[..., None], nrm, 0.0)[alive], r[alive], on_obj[alive], unknown[alive],
-                           np.broadcast_to(-Nn[:, None, :], (n_nodes, k, 3))[alive].copy())
+                           (-nrm)[alive])
     nh = np.maximum(samples.hit.sum(axis=1), 1)[:, None]
-    return Nodes(len(tri_o), n_nodes - len(tri_o), grid, samples, live, samples.rho.sum(axis=1) / nh)
+    return Nodes(n_obj, n_nodes - n_obj, obj_node, sup_node, grid, samples, live, samples.rho.sum(axis=1) / nh)
 
 
 def _frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -357,14 +397,14 @@ class Gather:
             prim = np.asarray(si.prim_index, np.int64)[hit]
             node = np.full(sid.size, -1, np.int64)
             on_o = sid == self.geo.object_id
-            node[on_o] = prim[on_o]
+            node[on_o] = nodes.object_face_node[prim[on_o]]
             on_s = sid == self.geo.support_id
             if nodes.grid is not None:
                 p = np.asarray(si.p, np.float64).T[hit][on_s]
                 cell = nodes.grid.cell_of(p[:, :2])
                 node[on_s] = np.where(cell >= 0, nodes.n_object + cell, -1)
             else:
-                node[on_s] = nodes.n_object + prim[on_s]
+                node[on_s] = nodes.n_object + nodes.support_face_node[prim[on_s]]
             ok = node >= 0
             live = np.where(ok, nodes.live[np.maximum(node, 0)], -1)
             ok &= live >= 0
