@@ -156,3 +156,22 @@ def test_targets_of_one_camera_sharing_no_usable_pixel_are_refused(capture, tmp_
     assert main(["run", str(cap), "--until", "solve", *RUN]) == 2
     line = _last_error_line(capsys)
     assert line.startswith("objcam: error:") and "no pixel is usable in every target" in line and "fix:" in line
+
+
+def test_one_illumination_with_every_albedo_unknown_is_flagged(tmp_path, capsys):
+    """One target, object and support albedo both unknown: the albedo alone explains the photo, so the stage says
+    the envmap is not constrained by the data (and a known object albedo lifts the warning)."""
+    cap = tmp_path / "one"
+    assert main(["synth", str(cap), "--envmap", "sunrise", "--spp", "16", "--support-albedo", "dots",
+                 "--support-albedo-known", "false", "--object-albedo-known", "false",
+                 "--cameras", '[{"width": 32, "height": 32, "distance": 0.3}]']) == 0
+    assert main(["run", str(cap), "--until", "solve", *RUN]) == 0
+    info = json.loads((cap / "objcam" / "solve" / "t0" / "solve.json").read_text())
+    assert info["envmap_constrained_by_data"] is False
+    summary = json.loads((cap / "objcam" / "solve" / "stage.json").read_text())["summary"]
+    assert summary.startswith("WARNING: t0: one illumination and every albedo unknown") and "fix:" in summary
+    toml = (cap / "capture.toml").read_text().replace("[[targets]]", "[albedo]\nobject = 0.6\n\n[[targets]]", 1)
+    (cap / "capture.toml").write_text(toml)
+    assert main(["run", str(cap), "--until", "solve", *RUN]) == 0
+    info = json.loads((cap / "objcam" / "solve" / "t0" / "solve.json").read_text())
+    assert info["envmap_constrained_by_data"] is True

@@ -368,6 +368,10 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     # summary says so in one line (run() below)
 
     mask = _texel_mask(grid, comp.texel_index)
+    # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
+    # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
+    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given)
+    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
     per_target: dict[str, dict] = {}
     for p, c in enumerate(cams):
         tr, rows = c["tr"], c["rows"]
@@ -406,6 +410,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "ls_relative_to_rho_free_A": float(res.info["ls_rel"]),
                 "lp_relative": float(res.info["lp_rel"]), "scale_at_clip": [bool(v) for v in res.scale_at_clip],
                 "auto_reg": auto, "prior": res.info["prior"], "diverged": bool(res.diverged),
+                "envmap_constrained_by_data": not unconstrained,
                 "objective_monotone": bool(np.all(np.diff(res.step_history) <= 1e-12 * np.abs(
                     np.asarray(res.step_history[:-1])))) if params.method == "exact" else None,
                 "solver": {k: res.info[k] for k in (
@@ -455,8 +460,13 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     worst_kkt = max(v["kkt_residual_max"] for v in per_target.values())
     joint = any(v.get("albedo") == "unknown" for v in per_target.values())
     div = next((v for v in per_target.values() if v.get("diverged")), None)
+    free = [k for k, v in per_target.items() if v.get("envmap_constrained_by_data") is False]
     summary = ((f"WARNING: joint solve ({params.method}) {div['message']}; fix: use solve.method=exact (monotone) "
                 "or a smaller solve.alpha. " if div else "")
+               + (f"WARNING: {', '.join(free)}: one illumination and every albedo unknown, so the albedo alone can "
+                  "explain the photo and the envmap comes from the priors, not the data; fix: give the support's or "
+                  "the object's albedo in capture.toml [albedo], or photograph two or more illuminations. "
+                  if free else "")
                + f"{len(per_target)} target(s), {params.method}"
                + (", joint albedo + envmap (envmap known only up to scale)" if joint else "")
                + f", {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
