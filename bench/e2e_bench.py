@@ -512,7 +512,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.write:
         from bench.sections import invocation, write_section
 
-        write_section("e2e", f"{invocation('bench.e2e_bench', argv)}.\n\n{md}",
+        # its own headings sit under the results page's section: one level deeper
+        body = "\n".join("###" + ln if ln.startswith("#") else ln for ln in md.splitlines())
+        write_section("e2e", f"{invocation('bench.e2e_bench', argv)}.\n\n{body}",
                       "End to end from raw photos (issues 3 and 4)")
     print(f"load average: {res['load_at_start']} at start, {res['load_at_end']} at end (2 cores); {root}")
     ok = all(bool(r.get("compare")) and all(c["within_10pct"] for c in r["compare"])
