@@ -139,7 +139,7 @@ from objcam.solvers.jointqp import solve_nnls_pcg
 from objcam.solvers.nnls import kkt_residual, solve_exact
 from objcam.solvers.regularization import DEFAULT_LR_REL, DEFAULT_LS_REL, difference_operator
 from objcam.solvers.search import golden_section
-from objcam.threads import single_blas_thread
+from objcam.threads import blas_threads, single_blas_thread
 
 #: Default lower bound on the albedo (the model's (0, 1] made closed).
 DEFAULT_RHO_MIN = 1e-3
@@ -268,9 +268,10 @@ def _weighted_gram(As: Sequence[np.ndarray], ws: Sequence[np.ndarray], n: int, f
         sw = np.sqrt(w)
         if fast and A.dtype == np.float32:
             sw32 = sw.astype(np.float32)
-            for r0 in range(0, A.shape[0], 2048):
-                blk = A[r0 : r0 + 2048] * sw32[r0 : r0 + 2048, None]
-                G += blk.T @ blk
+            with blas_threads():  # a large product: two threads are 1.6x faster here (objcam.threads)
+                for r0 in range(0, A.shape[0], 2048):
+                    blk = A[r0 : r0 + 2048] * sw32[r0 : r0 + 2048, None]
+                    G += blk.T @ blk
         else:
             step = _rows_per_block(n)
             for r0 in range(0, A.shape[0], step):
