@@ -34,7 +34,11 @@ class Params(BaseModel):
     object_subpixel_samples: int = Field(256, ge=1, description="direct: S for the pixels that see the object "
                                          "(their faceted normals and silhouette vary inside the pixel)")
     refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
-    downsample: int = Field(1, ge=1, description="pool f x f pixel blocks (pool the target with pool_target)")
+    downsample: int | Literal["auto"] = Field("auto", description="pool f x f pixel blocks (pool the target with "
+                                              "pool_target); 'auto': the smallest f that leaves at most max_pixels "
+                                              "pooled pixels (a 128 x 128 target: 1; 640 x 480: 4)")
+    max_pixels: int = Field(32768, ge=64, description="downsample=auto: most pooled pixels per camera (a 32 x 64 "
+                            "envmap has ~1,100 unknowns; beyond ~16-32k pixels the solve gains little and costs M)")
     seed: int = 0
     use_valid: bool = Field(True, description="skip pixels invalid in every target sharing the camera")
     batch_rays: int = Field(1 << 24, ge=1024, description="shadow rays per Mitsuba launch (memory bound)")
@@ -80,7 +84,6 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         groups.setdefault(json.dumps(t.camera.model_dump(), sort_keys=True), []).append(t)
     geo = SceneGeometry.load(art.description, art.folder, env_height=params.env_height,
                              upsample=params.path_upsample)
-    settings = BuildSettings(**params.model_dump())
     mapping: dict[str, str] = {}
     metrics: dict = {}
     totals = {"pixels_kept": 0, "pixels_total": 0, "rays_traced": 0, "rays_culled": 0}
@@ -88,7 +91,9 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     for i, targets in enumerate(groups.values()):
         sub = f"cam{i}"
         valids = [t.load_valid(art.folder) for t in targets]
-        noise = (_target_noise(art.folder, targets, params.downsample, estimate_relative_noise)
+        f = downsample_for(targets[0].camera, params)
+        settings = BuildSettings(**(params.model_dump(exclude={"max_pixels"}) | {"downsample": f}))
+        noise = (_target_noise(art.folder, targets, f, estimate_relative_noise)
                  if params.model == "auto" else None)
         m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
                          targets=[t.name for t in targets], target_noise=noise)
@@ -113,6 +118,17 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     summary = (f"A: {totals['pixels_kept']:,} px x {first.get('texels_kept', 0):,} texels ({chosen} {k_or_spp}{cams}) "
                f"in {metrics['seconds_total']:.1f} s")
     return StageOutputs(metrics=metrics, summary=summary)
+
+
+def downsample_for(camera, params: Params) -> int:
+    """The pooling factor of a camera: ``params.downsample``, or for 'auto' the smallest f with
+    (H // f) * (W // f) <= params.max_pixels."""
+    if params.downsample != "auto":
+        return int(params.downsample)
+    f = 1
+    while (camera.height // f) * (camera.width // f) > params.max_pixels:
+        f += 1
+    return f
 
 
 def _target_noise(folder, targets, f: int, estimator) -> tuple[float, str]:
