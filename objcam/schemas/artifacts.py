@@ -31,6 +31,7 @@ class TargetRecord(BaseModel):
     illumination: str = ""  # targets sharing it show one envmap from several cameras (default: the target's name)
     saturation: float | None = None
     noise_sigma: float | None = None
+    radiometry: str = "absolute"  # "relative": radiance x an unknown camera gain (photos decoded by ingest)
     n_valid: int
     n_pixels: int
 

@@ -80,6 +80,10 @@ class TargetSpec(BaseModel):
     illumination: str | None = Field(default=None, description="targets with the same illumination name show "
                                      "the same envmap from different cameras (default: the target's own name)")
     mask: str | None = Field(default=None, description="optional image, nonzero = usable pixel")
+    radiometry: Literal["absolute", "relative"] | None = Field(
+        default=None, description="'absolute': the image is radiance in the envmap's units (synthetic, calibrated); "
+        "'relative': radiance times an unknown camera gain, so the envmap is right up to one factor and evaluate "
+        "compares up to it. Default: relative for photos (folder), absolute for an image")
     saturation: float | None = Field(default=None, gt=0, description="pixels >= this in any channel are excluded")
     noise_sigma: float | None = Field(default=None, ge=0,
                                       description="relative noise of the image, if known (used by transport auto)")

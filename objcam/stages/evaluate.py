@@ -44,7 +44,9 @@ CODE_DEPS = ("objcam.metrics",)
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
     scale_invariant: bool | None = Field(None, description="fit the best global scale before comparing; None: a "
-                                         "scale per colour channel where the albedo was unknown, none elsewhere")
+                                         "scale per colour channel where the albedo was unknown, one global scale "
+                                         "for targets of relative radiometry (photos: an unknown camera gain), "
+                                         "none elsewhere")
 
 
 def truth_envmap_path(capture: Path, target: str) -> Path | None:
@@ -188,7 +190,9 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         est = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].astype(np.float64)
         mask = cv2.imread(str(solve_dir / target.name / "envmap_mask.png"), cv2.IMREAD_UNCHANGED) > 127
         unknown = json.loads((solve_dir / target.name / "solve.json").read_text()).get("albedo") == "unknown"
-        inv = params.scale_invariant if params.scale_invariant is not None else ("channel" if unknown else False)
+        # unknown albedo: the envmap is known up to a scale per channel; photos: up to the camera's unknown gain
+        inv = params.scale_invariant if params.scale_invariant is not None else (
+            "channel" if unknown else target.radiometry == "relative")
         source = "truth"
         if tpath is None:
             probe = _probe_truth(inputs, target, est.shape[0])

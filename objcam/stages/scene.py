@@ -152,8 +152,8 @@ def _target(spec, capture: Path, out: Path, upstream: dict[str, Path]) -> Target
     write_png(out / rel / "valid.png", valid.astype(np.float64))
     return TargetRecord(name=spec.name, camera=cam, image=str(rel / "image.exr"), valid=str(rel / "valid.png"),
                         illumination=spec.illumination_name, saturation=spec.saturation,
-                        noise_sigma=spec.noise_sigma, n_valid=int(valid.sum()),
-                        n_pixels=h * w)
+                        noise_sigma=spec.noise_sigma, n_valid=int(valid.sum()), n_pixels=h * w,
+                        radiometry=spec.radiometry or ("absolute" if spec.image is not None else "relative"))
 
 
 def _is_plane(mesh: MeshData, tol: float = 1e-6) -> bool:
