@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.objcam-setup
 CAPTURE ?= demo/capture
 ARGS   ?=
 DEMO_SYNTH_ARGS ?= --object bunny --envmap forest
-DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true
+DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true --target-spp 1024
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
