@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from objcam.capture.dng import write_dng
+from tests.test_sfm import random_photos
 from tests.test_ingest_stage import WB, block2, write_capture
 
 
@@ -112,27 +113,13 @@ def test_too_few_views(tmp_path, capfd, frame):
     assert (tmp_path / "w" / "ingest").is_dir() and not (tmp_path / "w" / "sfm").exists()
 
 
-def _unrelated_views(folder: Path, n: int) -> None:
-    """Photos that share nothing (random blobs on grey): no two overlap."""
-    import cv2
-
-    folder.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(5)
-    for i in range(n):
-        img = np.full((240, 320, 3), 200, np.uint8)
-        for _ in range(40):
-            c = tuple(int(v) for v in rng.integers(0, 255, 3))
-            cv2.circle(img, (int(rng.integers(0, 320)), int(rng.integers(0, 240))), int(rng.integers(3, 30)), c, -1)
-        cv2.imwrite(str(folder / f"p{i:02d}.png"), img)
-
-
 def test_sfm_registers_too_few(tmp_path, capfd):
     """Six views that do not overlap: SfM registers (almost) none; one line naming the views folder and the
     images that did not register, with the fix; rerunning gives the same answer and writes no sfm folder."""
     from objcam.image_io import write_exr
 
     cap = tmp_path / "cap"
-    _unrelated_views(cap / "views", 6)
+    random_photos(cap / "views", 6, seed=5)  # photos that share nothing: no two overlap
     write_exr(cap / "targets" / "t0" / "t0.exr", np.full((240, 320, 3), 0.2, np.float32))
     times = ", ".join(f'"p{i:02d}.png" = 0.01' for i in range(6))
     (cap / "capture.toml").write_text(

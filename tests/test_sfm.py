@@ -219,11 +219,11 @@ def test_too_few_views(small_capture, tmp_path):
     assert "\n" not in msg and str(views) in msg and "at least" in msg
 
 
-def _random_photos(folder, n, seed=0):
-    """Photos of something textured with no board in them."""
+def random_photos(folder, n, seed=0):
+    """Photos of something textured with no board in them (random blobs on grey; different seeds share nothing)."""
     import cv2
 
-    folder.mkdir(parents=True)
+    folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     for i in range(n):
         img = np.full((240, 320, 3), 200, np.uint8)
@@ -237,7 +237,7 @@ def _random_photos(folder, n, seed=0):
 def test_no_board_in_views(tmp_path):
     from objcam.sfm.frontend import estimate_cameras
 
-    photos = _random_photos(tmp_path / "photos", 8)
+    photos = random_photos(tmp_path / "photos", 8)
     with pytest.raises(InputError) as e:
         estimate_cameras(tmp_path / "w", photos)
     msg = str(e.value)
@@ -248,7 +248,7 @@ def test_no_board_in_views(tmp_path):
 def test_sfm_registers_too_few(tmp_path):
     from objcam.sfm.colmap import SfmOptions, prepare_images, run_sfm
 
-    photos = _random_photos(tmp_path / "photos", 4, seed=1)  # unrelated pictures: nothing to match
+    photos = random_photos(tmp_path / "photos", 4, seed=1)  # unrelated pictures: nothing to match
     groups = prepare_images(tmp_path / "images", {"views": photos})
     with pytest.raises(InputError) as e:
         run_sfm(tmp_path / "w", tmp_path / "images", groups, options=SfmOptions(max_num_features=500),
