@@ -2,7 +2,8 @@
 
 The radiance leaving a diffuse surface point q under texel j alone, ``L_j(q) = rho_q / pi int_j V max(0, n.w)``,
 is what the direct model computes for a pixel. So the direct light of a set of surface *nodes* (every face of
-the object; on a plane support, the cells of a polar grid around the object; on any other support, its faces) is
+the object, or clusters of faces beyond ``max_mesh_nodes``; on a plane support, the cells of a polar grid around
+the object; on any other support, its faces or face clusters) is
 one more :class:`objcam.transport.direct.DirectModel` run: E (S, N) for S nodes, each averaged over a few points
 spread over its area, with the direct model's stratified shadow rays.
 
@@ -23,7 +24,10 @@ and the same estimate for every column.
 
 What it does not model: light reflected by a node varies within the node only through its points' average (a
 node is one value per texel), and a receiver's rays are a finite quadrature of its hemisphere (``rays``); both
-errors are smooth in the image and shared by neighbouring columns. Unknown albedo is rendered as 1 (the transport
+errors are smooth in the image and shared by neighbouring columns. Measured (bench forest, 128 x 128, 32 x 64):
+the defaults are within 0.15% of the image (object pixels) of a 4x-denser gather, A's model error against a
+16384-spp path-traced target fell from 0.45% (path-traced correction) to 0.26%, and the indirect part costs
+~4 s instead of 15 s. Unknown albedo is rendered as 1 (the transport
 convention) where it is the receiver's (A = diag(rho) A' stays exact for the receiving pixel); where a surface of
 unknown albedo reflects light onto others it takes its initial estimate (photogrammetry's texture) or
 :data:`UNKNOWN_BOUNCE_ALBEDO`.
