@@ -18,8 +18,6 @@ Neither part uses objcam's transport code, so the target stays independent of th
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from objcam.camera import Camera

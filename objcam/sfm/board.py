@@ -140,8 +140,6 @@ def board_texture(spec: BoardSpec, px_per_m: float = 4000.0) -> BoardTexture:
     ``board_points_world``. Square edges fall on texel boundaries (px_per_m is rounded so that a square is an
     even number of texels), so the chessboard corners are exact.
     """
-    import cv2
-
     s = max(2, 2 * int(round(spec.square_length * px_per_m / 2)))  # texels per square, even
     ppm = s / spec.square_length
     bw, bh = spec.squares_x * s, spec.squares_y * s

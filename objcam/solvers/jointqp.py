@@ -109,7 +109,6 @@ def solve_nnls_pcg(apply_Q: Callable[[np.ndarray, np.ndarray], np.ndarray], diag
         Z = prec(R, cols)
         Pd = Z.copy()
         rz = np.einsum("nk,nk->k", R, Z)
-        rz0 = np.where(rz > 0, rz, 1.0)
         bF = np.array([np.linalg.norm(B[F[:, k], k]) for k in cols])
         for _ in range(max_cg):
             rn = np.sqrt(np.einsum("nk,nk->k", R, R))

@@ -28,7 +28,6 @@ from __future__ import annotations
 import json
 import shutil
 import sys
-import time
 from pathlib import Path
 from typing import Literal
 
@@ -152,7 +151,6 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     from objcam.sfm.frontend import estimate_cameras
     from objcam.sfm.report import format_checks
 
-    t0 = time.perf_counter()
     capture, out, ingest = inputs.capture, inputs.out, inputs.upstream["ingest"]
     m = CaptureManifest.load(capture)
     view_recs = json.loads((ingest / "views.json").read_text())
@@ -206,7 +204,6 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     if not inputs.quiet:
         print(format_checks(result.checks, color=sys.stderr.isatty()), file=sys.stderr)
     al = result.alignment
-    seconds = time.perf_counter() - t0
     metrics = {
         "grade": grade, "registered": n_reg, "images": n_img, "views": len(views),
         "views_registered": len(result.views), "targets_registered": len(result.targets),
