@@ -17,6 +17,23 @@ and ``eps = eps_rel * s``. Near r = s the penalty equals the quadratic prior ``l
 the weights keep their meaning. Each step replaces huber by its quadratic majoriser at the current r, i.e. the
 quadratic prior with per-edge weights ``w_e = s / max(r_e, eps)`` (shared by the channels), and solves that
 bound-constrained quadratic exactly (:func:`objcam.solvers.nnls.solve_exact`, warm-started): F never increases.
+
+Tone weighting (``tone = p > 0``). Real envmaps span 1e3-1e5:1, and what a person sees of one (and the tonemapped
+SSIM of objcam.metrics, gamma 1/2.2) is its structure in tonemapped units: a step of 0.01 in a dark wall is as
+visible as a step of 1 next to the sun. A prior in linear radiance charges the bright edges most and leaves the
+dark regions, where a diffuse occluder's data are weakest relative to the noise, to wander. With ``tone`` each
+edge's Huber term is weighted by
+
+    b_e = (m / (xbar_e + delta m))^p,   normalised to mean 1,
+
+``xbar_e`` the mean radiance of the edge's two texels (over the channels) at the current estimate, ``m`` the mean
+of the estimate and ``delta = tone_floor`` (so black texels get a finite weight): ``b_e huber(r_e)`` is close to
+the Huber of the differences of ``x^(1-p)``, a power law like the tonemap's. The weights follow the estimate, so
+the steps are iteratively reweighted least squares for that (no longer convex) prior; each step is still the
+exact bound-constrained minimiser of its quadratic majoriser, the history records F at each step's weights.
+Measured on the bench's four HDRIs (bench/results.md: p 0.3, eps 0.001, ls 600 sigma^2 against p 0, eps 0.005,
+300 sigma^2): SSIM courtyard 0.70 -> 0.78, sunrise 0.65 -> 0.75, forest 0.79 -> 0.79, city 0.86 -> 0.83, and
+relative RMSE 0.74 -> 0.71, 4.9 -> 3.6, 0.53 -> 0.55, 1.50 -> 1.03.
 """
 
 from __future__ import annotations
@@ -39,6 +56,7 @@ class EdgeResult:
     steps: int = 0
     edge_scale: float = 0.0  # s
     kept_edges: float = 0.0  # fraction of edges above eps at the end (where the prior acts like TV)
+    tone: float = 0.0  # the tone exponent p used (0: none)
 
 
 def huber(r: np.ndarray, eps: float) -> np.ndarray:
@@ -51,11 +69,31 @@ def edge_norms(D: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(DX * DX, axis=1))
 
 
+def edge_means(D: sp.csr_matrix) -> sp.csr_matrix:
+    """(E, N) operator: the mean of each edge's two texels."""
+    M = abs(D).tocsr()
+    rs = np.asarray(M.sum(axis=1)).ravel()
+    return (sp.diags(1.0 / np.where(rs > 0, rs, 1.0)) @ M).tocsr()
+
+
+def tone_weights(M: sp.csr_matrix, X: np.ndarray, tone: float, floor: float) -> np.ndarray:
+    """(E,) the tone weights b_e of the module docstring for the estimate X (N, C); all 1 when tone is 0."""
+    if tone <= 0:
+        return np.ones(M.shape[0])
+    xm = M @ np.maximum(X, 0.0).mean(axis=1)
+    m = float(np.mean(np.maximum(X, 0.0)))
+    if m <= 0:
+        return np.ones(M.shape[0])
+    b = (m / (xm + floor * m)) ** tone
+    return b / b.mean()
+
+
 def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: Sequence[Sequence[int]],
                 yy: np.ndarray, D: sp.csr_matrix, ls_abs: float, lr_abs: float, steps: int = 6,
                 eps_rel: float = 0.05, tol: float = 1e-4,
-                solve: Callable[..., SolveResult] = solve_exact) -> EdgeResult:
-    """Minimise F (module docstring) over X >= 0.
+                solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
+                tone_floor: float = 0.05) -> EdgeResult:
+    """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
     grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
     A_c^T y for the channels ``chans[b]`` it serves (a grey A: one block serving [0, 1, 2]).
@@ -65,7 +103,11 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     n = D.shape[1]
     n_ch = sum(len(c) for c in chans)
     X = np.zeros((n, n_ch))
+    if tone < 0 or tone_floor <= 0:
+        raise ValueError("tone must be >= 0 and tone_floor > 0")
     w = np.ones(D.shape[0])
+    bw = np.ones(D.shape[0])  # tone weights b_e
+    M = edge_means(D) if tone > 0 else None
     results: list[SolveResult] = []
     passive: list[np.ndarray | None] = [None] * len(grams)
     history: list[float] = []
@@ -76,7 +118,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         for G, B, ch in zip(grams, rhs, chans):
             Xc = X[:, list(ch)]
             data += float(np.sum(Xc * (G @ Xc)) - 2 * np.sum(B * Xc))
-        prior = ls_abs * s * 2 * n_ch * float(huber(edge_norms(D, X), eps).sum()) if eps > 0 else 0.0
+        prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
         return data + float(yy.sum()) + lr_abs * float(np.sum(X * X)) + prior
 
     for step in range(steps + 1):
@@ -96,8 +138,10 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 break
             eps = eps_rel * s
         history.append(objective(X))
-        if step > 1 and history[-2] - history[-1] <= tol * abs(history[-2]):
+        if step > 1 and abs(history[-2] - history[-1]) <= tol * abs(history[-2]):
             break
-        w = s / np.maximum(r, eps)
+        if tone > 0:
+            bw = tone_weights(M, X, tone, tone_floor)
+        w = bw * s / np.maximum(r, eps)
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
-    return EdgeResult(X, results, history, len(history) - 1, s, kept)
+    return EdgeResult(X, results, history, len(history) - 1, s, kept, float(tone))
