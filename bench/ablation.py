@@ -255,11 +255,15 @@ def autoreg_check(cap: Path, hdris: tuple[str, ...], rules: tuple[str, ...]) -> 
         for t, v in r["per_target"].items():
             per.setdefault(t, {})[f"{ls:g}"] = v["relative_rmse"]
     auto: dict[str, dict] = {}
+    # "noise": the default, ls from the targets' noise model a priori (solve's noise rule, no auto_reg)
+    rules = ("noise",) + tuple(rules)
     for rule in rules:
         log(f"autoreg: rule {rule}")
-        auto[rule] = run_row(cap, ["solve.prior=edges", f"solve.auto_reg={rule}"], key=f"{cap.name} | auto {rule}")
+        sets = ["solve.prior=edges"] + ([] if rule == "noise" else [f"solve.auto_reg={rule}"])
+        auto[rule] = run_row(cap, sets, key=f"{cap.name} | auto {rule}")
+    names = {"noise": "noise rule (default)"}
     head = "| HDRI | best hand-tuned ls | its rel. RMSE | " + " | ".join(
-        f"{r}: ls / rel. RMSE / ratio" for r in rules) + " |"
+        f"{names.get(r, r)}: ls / rel. RMSE / ratio" for r in rules) + " |"
     out = [head, "|---|---:|---:|" + "---:|" * len(rules)]
     summary = {}
     for t in hdris:
