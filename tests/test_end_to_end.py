@@ -71,13 +71,36 @@ def test_second_run_is_cached_and_status_done(capture, capsys):
 
 
 def test_exact_never_worse_than_paper(capture, tmp_path):
-    work = tmp_path / "paper"
-    assert main(["run", str(capture), "--quiet", "--work", str(work), "--until", "solve",
-                 "--set", "transport.model=direct", "--set", "solve.method=paper"]) == 0
-    exact = json.loads((capture / "objcam" / "solve" / "t0" / "solve.json").read_text())
-    paper = json.loads((work / "solve" / "t0" / "solve.json").read_text())
+    # the same objective (the quadratic prior at the same weights) minimised by both methods
+    runs = {}
+    for method in ("exact", "paper"):
+        work = tmp_path / method
+        assert main(["run", str(capture), "--quiet", "--work", str(work), "--until", "solve",
+                     "--set", "transport.model=direct", "--set", f"solve.method={method}",
+                     "--set", "solve.prior=smooth"]) == 0
+        runs[method] = json.loads((work / "solve" / "t0" / "solve.json").read_text())
+    exact, paper = runs["exact"], runs["paper"]
+    assert exact["ls_relative"] == paper["ls_relative"] and exact["prior"] == paper["prior"] == "smooth"
     assert np.all(np.array(exact["objective"]) <= np.array(paper["objective"]) * (1 + 1e-9))
     assert paper["kkt_residual_max"] > exact["kkt_residual_max"]
+
+
+def test_noise_rules_set_ls(capture, tmp_path):
+    """The default (edge prior) takes ls = 1.5 sigma, the quadratic prior 300 sigma^2, sigma the target's
+    noise_sigma (one fitted pixel: the transport does not pool this 64 x 64 target)."""
+    from objcam.stages.solve import EDGE_LS_PER_SIGMA, LS_NOISE_FACTOR, LS_RANGE
+    import tomllib
+
+    sigma = tomllib.loads((capture / "capture.toml").read_text())["targets"][0]["noise_sigma"]
+    edges = json.loads((capture / "objcam" / "solve" / "t0" / "solve.json").read_text())
+    assert edges["prior"] == "edges" and "noise_sigma" in edges["ls_source"]
+    assert edges["ls_relative"] == pytest.approx(float(np.clip(EDGE_LS_PER_SIGMA * sigma, *LS_RANGE)))
+    assert edges["edges"]["tone"] == 0.3 and edges["edges"]["edge_eps"] == 0.001
+    work = tmp_path / "smooth"
+    assert main(["run", str(capture), "--quiet", "--work", str(work), "--until", "solve",
+                 "--set", "transport.model=direct", "--set", "solve.prior=smooth"]) == 0
+    smooth = json.loads((work / "solve" / "t0" / "solve.json").read_text())
+    assert smooth["ls_relative"] == pytest.approx(float(np.clip(LS_NOISE_FACTOR * sigma**2, *LS_RANGE)))
 
 
 def test_analysis_maps(capture):
