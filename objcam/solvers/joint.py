@@ -170,6 +170,8 @@ class CameraBlock:
     pixel_index: (M,) flat indices ``r * W + c`` of the valid pixels on ``image_shape`` (needed when lp > 0).
     image_shape: (H, W) of the camera's image.
     rho0: initial albedo, (M, C), (M,) or a scalar; default :data:`DEFAULT_RHO0`.
+    fixed: (M,) bool, pixels whose albedo is known: held at rho0 (clipped into [rho_min, 1]), not estimated. Any
+        fixed pixel pins the scale that c rho, x / c otherwise leaves free.
     """
 
     A: np.ndarray
@@ -177,6 +179,7 @@ class CameraBlock:
     pixel_index: np.ndarray | None = None
     image_shape: tuple[int, int] | None = None
     rho0: np.ndarray | float | None = None
+    fixed: np.ndarray | None = None
 
 
 def _as_block(b: CameraBlock | Sequence) -> CameraBlock:
@@ -466,7 +469,7 @@ class _Joint:
             raise NoValidPixelsError("joint solve: no camera blocks given -- nothing constrains the envmap")
         texel_index = np.asarray(texel_index, dtype=np.int64).ravel()
         self.n = n = texel_index.size
-        self.As, self.Ys, self.Gs, self.rho0 = [], [], [], []
+        self.As, self.Ys, self.Gs, self.rho0, self.fixed = [], [], [], [], []
         shape_lc = None
         for k, b in enumerate(blocks):
             A = np.asarray(b.A)
@@ -489,6 +492,12 @@ class _Joint:
                 else None
             )
             self.rho0.append(b.rho0)
+            fx = np.zeros(A.shape[0], bool) if b.fixed is None else np.asarray(b.fixed, bool).ravel()
+            if fx.shape != (A.shape[0],):
+                raise ValueError(f"camera {k}: fixed has {fx.size} entries, A' has {A.shape[0]} rows")
+            if fx.any() and b.rho0 is None:
+                raise ValueError(f"camera {k}: fixed pixels need their albedo in rho0")
+            self.fixed.append(fx)
         self.L, self.C = shape_lc
         self.P = len(self.As)
         self.m_total = sum(A.shape[0] for A in self.As)
@@ -547,6 +556,7 @@ class _Joint:
         self._R_cache: dict[int, tuple[sp.csr_matrix, np.ndarray]] = {}
         self.t_gram = 0.0
         self.grams = 0
+        self.fixed_vals = self.initial_rho()
 
     # -- initial values
     def initial_rho(self) -> list[np.ndarray]:
@@ -559,6 +569,25 @@ class _Joint:
             ).copy()
             out.append(np.clip(r, self.rho_min, 1.0))
         return out
+
+    def pin(self, rho: list[np.ndarray]) -> list[np.ndarray]:
+        """Hold the fixed pixels at their albedo (in place); returns rho."""
+        for k, fx in enumerate(self.fixed):
+            if fx.any():
+                rho[k][fx] = self.fixed_vals[k][fx]
+        return rho
+
+    def bounds(self, k: int, c: int) -> tuple[np.ndarray | float, np.ndarray | float]:
+        """(lo, hi) of camera k's albedo in channel c: [rho_min, 1], a fixed pixel's value for both."""
+        fx = self.fixed[k]
+        if not fx.any():
+            return self.rho_min, 1.0
+        v = self.fixed_vals[k][:, c]
+        return np.where(fx, v, self.rho_min), np.where(fx, v, 1.0)
+
+    @property
+    def any_fixed(self) -> bool:
+        return any(bool(fx.any()) for fx in self.fixed)
 
     # -- kernels
     def shading(self, X: np.ndarray) -> list[np.ndarray]:
@@ -727,7 +756,7 @@ class _Joint:
             for c in range(self.C):
                 if r.shape[0]:
                     H, beta = self.rho_system(r, s, Y, k, c, prox=False)
-                    out[k, c] = box_kkt_residual(H, beta, r[:, c], self.rho_min, 1.0)
+                    out[k, c] = box_kkt_residual(H, beta, r[:, c], *self.bounds(k, c))
         return out
 
 
@@ -819,7 +848,7 @@ class _SubspaceGN:
             g[l * k:(l + 1) * k] += Bl[l][p].T.astype(np.float64) @ (r * res[:, l])
             blk = ((Bl[l][p] * r2.astype(np.float32)[:, None]).T @ Bl[l][p]).astype(np.float64)
             H[l * k:(l + 1) * k, l * k:(l + 1) * k] += blk
-        free = np.flatnonzero((r > J.rho_min) & (r < 1.0))
+        free = np.flatnonzero((r > J.rho_min) & (r < 1.0) & ~J.fixed[p])
         if free.size == 0:
             return
         Hrr = (sp.diags(a) + J.lp * J.GtG[p]).tocsr()[free][:, free].tocsc()
@@ -856,7 +885,7 @@ class _SubspaceGN:
                 if J.lp > 0:
                     self._coupled(p, r, s, res, a, Bl, H, g)
                     continue
-                free = (a > 1e-12 * (a.max() if a.size else 1.0)) & (r > J.rho_min) & (r < 1.0)
+                free = (a > 1e-12 * (a.max() if a.size else 1.0)) & (r > J.rho_min) & (r < 1.0) & ~J.fixed[p]
                 inv_a = np.where(free, 1.0 / np.where(free, a, 1.0), 0.0)
                 # P r = r - s (s.r)/a
                 pres = res - s * (np.einsum("ml,ml->m", s, res) * inv_a)[:, None]
@@ -1108,18 +1137,28 @@ def solve_joint(
                 continue
             for c in chans:
                 H, bt = J.rho_system(rho[k], S[k], J.Ys[k], k, c)
+                fx = J.fixed[k]
                 if exact:
-                    if J.lp > 0:
+                    if J.lp > 0 and fx.any():
+                        # the fixed pixels' terms move to the right-hand side of the free pixels' box QP
+                        fr = ~fx
+                        Hc = H.tocsr()
+                        r = rho[k][:, c].copy()
+                        bf = bt[fr] - Hc[fr][:, fx] @ r[fx]
+                        r[fr] = solve_box_qp(Hc[fr][:, fr], bf, J.rho_min, 1.0, x0=r[fr], tol=qp_tol).x
+                    elif J.lp > 0:
                         r = solve_box_qp(H, bt, J.rho_min, 1.0, x0=rho[k][:, c], tol=qp_tol).x
                     else:
-                        r = np.clip(bt / H.diagonal(), J.rho_min, 1.0)
+                        r = np.clip(bt / H.diagonal(), *J.bounds(k, c))
                 else:
                     if J.lp > 0:
                         step = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(H @ rho[k][:, c] - bt)
                     else:
                         step = rho[k][:, c] - bt / H.diagonal()
-                    r = np.clip(rho[k][:, c] - beta * step, J.rho_min, 1.0)
+                    r = np.clip(rho[k][:, c] - beta * step, *J.bounds(k, c))
                 rho[k][:, c] = r
+            if J.fixed[k].any():
+                rho[k][J.fixed[k]] = J.fixed_vals[k][J.fixed[k]]
         timers["rho"] += time.perf_counter() - t0
         return rho
 
@@ -1132,13 +1171,26 @@ def solve_joint(
         the unclipped range, refined by golden-section search, and the best c (c = 1 included) is taken; the
         objective is then recomputed directly and the step undone unless it decreased, so F never increases.
         With lp = 0 one evaluation costs O(log M): the pixels clipped at either bound are a prefix and a suffix
-        of the albedo sorted once, and their data terms are quadratics in 1/c summed by prefix sums.
+        of the albedo sorted once, and their data terms are quadratics in 1/c summed by prefix sums. Fixed pixels
+        (known albedo) keep their albedo, so their data term is a quadratic in 1/c too: they pin c.
         """
         t0 = time.perf_counter()
         live = [k for k in range(P) if rho[k].shape[0]]
         for c in chans:
-            r_all = np.concatenate([rho[k][:, c] for k in live])
+            free_k = [~J.fixed[k] for k in live]
+            r_all = np.concatenate([rho[k][fr, c] for k, fr in zip(live, free_k)])
+            if r_all.size == 0:
+                continue
             rmax, rmin = float(r_all.max()), float(r_all.min())
+            # the fixed pixels' data: sum (rho s / c - y)^2 = fa / c^2 - 2 fb / c + fy
+            fa = fb = fy = 0.0
+            for k, fr in zip(live, free_k):
+                fx = ~fr
+                if fx.any():
+                    rs_, sh_, y_ = rho[k][fx, c][:, None], S[k][fx][:, :, c], J.Ys[k][fx][:, :, c]
+                    fa += float(np.sum((rs_ * sh_) ** 2))
+                    fb += float(np.sum(rs_ * sh_ * y_))
+                    fy += float(np.sum(y_ * y_))
             if J.huber_on:
                 DX = (J.D @ X[:, :, c])  # (E, L)
                 others = (np.einsum("elc,elc->el", *(2 * [(J.D @ X.reshape(n, -1)).reshape(-1, L, C)]))
@@ -1163,19 +1215,20 @@ def solve_joint(
                 s_c = [S[k][:, :, c] for k in live]
                 y_c = [J.Ys[k][:, :, c] for k in live]
                 g_c = [J.Gs[k] for k in live]
+                f_c = [J.fixed[k] for k in live]
 
                 def data_at(cs):
                     v = 0.0
-                    for r, sh, y, G in zip(r_c, s_c, y_c, g_c):
-                        rr = np.clip(r * cs, J.rho_min, 1.0)
+                    for r, sh, y, G, fx in zip(r_c, s_c, y_c, g_c, f_c):
+                        rr = np.where(fx, r, np.clip(r * cs, J.rho_min, 1.0))
                         res = rr[:, None] * (sh / cs) - y
                         v += float(np.sum(res * res))
                         gr = G @ rr
                         v += J.lp * float(gr @ gr)
                     return v
             else:
-                sh = np.concatenate([S[k][:, :, c] for k in live])
-                yv = np.concatenate([J.Ys[k][:, :, c] for k in live])
+                sh = np.concatenate([S[k][fr][:, :, c] for k, fr in zip(live, free_k)])
+                yv = np.concatenate([J.Ys[k][fr][:, :, c] for k, fr in zip(live, free_k)])
                 order = np.argsort(r_all, kind="stable")
                 rs = r_all[order]
                 sh, yv = sh[order], yv[order]
@@ -1193,7 +1246,7 @@ def solve_joint(
                     e, aa_, bb, yy = (cm[lo] - cm[0] for cm in cum)
                     v = e_tot - e + (J.rho_min**2 * aa_ / cs**2 - 2 * J.rho_min * bb / cs + yy)
                     e, aa_, bb, yy = (cm[m_all] - cm[hi] for cm in cum)
-                    return float(v - e + (aa_ / cs**2 - 2 * bb / cs + yy))
+                    return float(v - e + (aa_ / cs**2 - 2 * bb / cs + yy) + (fa / cs**2 - 2 * fb / cs + fy))
 
             def f(t):
                 cs = np.exp(t)
@@ -1218,7 +1271,7 @@ def solve_joint(
             saved = ([rho[k][:, c].copy() for k in range(P)], [S[k][:, :, c].copy() for k in range(P)],
                      X[:, :, c].copy())
             for k in range(P):
-                rho[k][:, c] = np.clip(rho[k][:, c] * cs, J.rho_min, 1.0)
+                rho[k][:, c] = np.where(J.fixed[k], rho[k][:, c], np.clip(rho[k][:, c] * cs, J.rho_min, 1.0))
                 S[k][:, :, c] /= cs
             X[:, :, c] /= cs
             if not float(J.true_objective(rho, X, S).sum()) < before:  # a rounding-level gain: undo
@@ -1231,9 +1284,9 @@ def solve_joint(
         return float(J.true_objective(rho, X, S).sum())
 
     with single_blas_thread():
-        rho = J.initial_rho() if rho_init is None else [
+        rho = J.initial_rho() if rho_init is None else J.pin([
             np.clip(np.asarray(r, dtype=np.float64).reshape(A.shape[0], C), J.rho_min, 1.0).copy()
-            for r, A in zip(rho_init, J.As)]
+            for r, A in zip(rho_init, J.As)])
         X = np.zeros((n, L, C))
         S = [np.zeros((A.shape[0], L, C)) for A in J.As]
         step_hist = [total(rho, X, S)]
@@ -1320,6 +1373,10 @@ def solve_joint(
                     z = aa[c].step(flat(rho, c), flat(rho_p, c))
                     if z is not None:
                         z = np.clip(z, J.rho_min, 1.0)
+                        if J.any_fixed:  # extrapolate the free pixels only
+                            zz = [r.copy() for r in rho_p]
+                            unflat(z, zz, c)
+                            z = flat(J.pin(zz), c)
                         if np.max(np.abs(z - flat(rho_p, c))) > 1e-12:
                             unflat(z, cand, c)
                             tried.append(c)
@@ -1432,7 +1489,7 @@ def solve_joint(
         message=message,
         kkt_x=kkt_x,
         kkt_rho=kkt_rho,
-        scale_ambiguous=True,
+        scale_ambiguous=not J.any_fixed,
         scale_at_clip=rmax >= 1.0 - 1e-12,
         method=method,
         seconds=time.perf_counter() - t_start,

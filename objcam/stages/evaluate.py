@@ -189,8 +189,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         tpath = truth_envmap_path(inputs.capture, target.name)
         est = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].astype(np.float64)
         mask = cv2.imread(str(solve_dir / target.name / "envmap_mask.png"), cv2.IMREAD_UNCHANGED) > 127
-        unknown = json.loads((solve_dir / target.name / "solve.json").read_text()).get("albedo") == "unknown"
-        # unknown albedo: the envmap is known up to a scale per channel; photos: up to the camera's unknown gain
+        sinfo = json.loads((solve_dir / target.name / "solve.json").read_text())
+        unknown = sinfo.get("albedo") == "unknown" and bool(sinfo.get("scale_ambiguous", True))
+        # unknown albedo (no pixel of known albedo to pin it): the envmap is known up to a scale per channel;
+        # photos: up to the camera's unknown gain
         inv = params.scale_invariant if params.scale_invariant is not None else (
             "channel" if unknown else target.radiometry == "relative")
         source = "truth"
