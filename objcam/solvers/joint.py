@@ -105,12 +105,17 @@ majorise-minimise x-steps}; the solve stops when the relative decrease of the ob
 ``tol`` (per channel with the quadratic prior; of the total with the edge prior, whose edges couple the channels)
 or after ``max_iter`` sweeps.
 
-Scale ambiguity. Only the regularisers fix the global scale per channel (a c with rho -> c rho, x -> x / c
-leaves the data unchanged). With lp = 0 the envmap priors prefer small x, so the scale step pushes the largest
-albedo to the clip: ``max rho_c = 1`` (``JointResult.scale_at_clip``); with lp > 0 the two priors may balance
-inside the box. Either way the absolute albedo and radiance are not observable: ``JointResult.scale_ambiguous``
-is True and estimates should be compared after a best-fit scale per channel (:func:`evaluate_joint`; or globally
-with :func:`objcam.metrics.best_scale`).
+Scale ambiguity. Without pixels of known albedo only the regularisers fix the global scale per channel (a c
+with rho -> c rho, x -> x / c leaves the data unchanged). With lp = 0 the envmap priors prefer small x, so the
+scale step pushes the largest albedo to the clip: ``max rho_c = 1`` (``JointResult.scale_at_clip``); with lp > 0
+the two priors may balance inside the box. Either way the absolute albedo and radiance are not observable:
+``JointResult.scale_ambiguous`` is True and estimates should be compared after a best-fit scale per channel
+(:func:`evaluate_joint`; or globally with :func:`objcam.metrics.best_scale`). Pixels of known albedo
+(``CameraBlock.fixed``: the object's, given in capture.toml) are held at their value in every step (the rho step
+solves for the others, the Anderson candidate keeps them, the scale step scales only the others and counts the
+fixed pixels' data, a quadratic in 1/c); they pin c, and ``scale_ambiguous`` is then False. Measured on the
+bench's dots scene (the bunny's 586 pixels of known albedo): envmap SSIM 0.46 -> 0.50, absolute albedo error
+19% -> 1.5%, 18 s instead of 25 s.
 
 The paper's variant (``method="paper"``): the same loop with the method's damped clipped steps instead of exact
 block minimisation and no scale step: ``x <- max(0, x - alpha Q_c^{-1} (Q_c x - b))`` (Eq. 7, one step per
@@ -436,7 +441,7 @@ class JointResult:
     message: one line on how the solve ended.
     kkt_x: (L, C) relative KKT residual of the final x for the final rho (x-subproblem, :func:`kkt_residual`).
     kkt_rho: (P, C) relative KKT residual of the final rho for the final x (rho-subproblem, box QP).
-    scale_ambiguous: always True: (c rho, x / c) fits the data equally; the regularisers pick c.
+    scale_ambiguous: True unless some pixel is fixed: (c rho, x / c) fits the data equally; the regularisers pick c.
     scale_at_clip: (C,) whether max rho_c == 1, i.e. the clip fixed the scale of that channel.
     method: "exact" or "paper".  seconds: wall time.  info: weights and timings.
     """

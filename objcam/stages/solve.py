@@ -377,9 +377,10 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         # start known pixels at their known albedo and unknown ones mid-range
         rho0 = np.where(tr.unknown_albedo[rows, None], 0.5, np.clip(tr.albedo[rows], 1e-3, 1.0))
         # pixels of known albedo (the object's, given in capture.toml) are held at it: they pin the scale that
-        # unknown albedo alone leaves free (measured on the bench's dots scene: envmap SSIM 0.46 -> 0.50,
-        # absolute albedo error 19% -> 1.5%)
-        fixed = ~tr.unknown_albedo[rows]
+        # unknown albedo alone leaves free (measured on the bench's dots scene: envmap SSIM 0.46 -> 0.51,
+        # absolute albedo error 19% -> 1.5%). The paper's damped steps estimate every pixel's albedo, as the
+        # method does: held pixels made them diverge there (objective x10 by sweep 8, no scale step to follow)
+        fixed = ~tr.unknown_albedo[rows] if params.method == "exact" else np.zeros(rows.size, bool)
         sig = [_sigma(scene.target(t), data[t][3][rows], params.auto_reg) for t in tnames]
         cams.append(dict(key=cam, tr=tr, rows=rows, A=A, Y=Y, rho0=rho0, fixed=fixed, targets=tnames, sigma=sig))
     L = len(comp.illuminations)
