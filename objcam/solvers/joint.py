@@ -114,8 +114,8 @@ the two priors may balance inside the box. Either way the absolute albedo and ra
 (``CameraBlock.fixed``: the object's, given in capture.toml) are held at their value in every step (the rho step
 solves for the others, the Anderson candidate keeps them, the scale step scales only the others and counts the
 fixed pixels' data, a quadratic in 1/c); they pin c, and ``scale_ambiguous`` is then False. Measured on the
-bench's dots scene (the bunny's 586 pixels of known albedo): envmap SSIM 0.46 -> 0.50, absolute albedo error
-19% -> 1.5%, 18 s instead of 25 s.
+bench's dots scene (the bunny's 586 pixels of known albedo): envmap SSIM 0.46 -> 0.51, absolute albedo error
+19% -> 1.5%, 10 sweeps instead of 15 (16-20 s instead of 24).
 
 The paper's variant (``method="paper"``): the same loop with the method's damped clipped steps instead of exact
 block minimisation and no scale step: ``x <- max(0, x - alpha Q_c^{-1} (Q_c x - b))`` (Eq. 7, one step per
