@@ -1032,6 +1032,7 @@ def solve_joint(
     ref: dict = dict(G={}, stale=set(), applications=0, rounds=0, refreshes=0, steps=0)
     sizes = [A.shape[0] for A in J.As]
     splits = np.cumsum(sizes)[:-1]
+    fixed_flat = np.concatenate(J.fixed)  # the pixels of known albedo, in the order of flat()
     # the Gram matrices of the current sweep, keyed by the albedo values (shared by the x-steps of one sweep)
     gram_cache: dict = {}
 
@@ -1162,8 +1163,6 @@ def solve_joint(
                         step = rho[k][:, c] - bt / H.diagonal()
                     r = np.clip(rho[k][:, c] - beta * step, *J.bounds(k, c))
                 rho[k][:, c] = r
-            if J.fixed[k].any():
-                rho[k][J.fixed[k]] = J.fixed_vals[k][J.fixed[k]]
         timers["rho"] += time.perf_counter() - t0
         return rho
 
@@ -1378,10 +1377,7 @@ def solve_joint(
                     z = aa[c].step(flat(rho, c), flat(rho_p, c))
                     if z is not None:
                         z = np.clip(z, J.rho_min, 1.0)
-                        if J.any_fixed:  # extrapolate the free pixels only
-                            zz = [r.copy() for r in rho_p]
-                            unflat(z, zz, c)
-                            z = flat(J.pin(zz), c)
+                        z = np.where(fixed_flat, flat(rho_p, c), z)  # extrapolate the free pixels only
                         if np.max(np.abs(z - flat(rho_p, c))) > 1e-12:
                             unflat(z, cand, c)
                             tried.append(c)

@@ -420,6 +420,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
     # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given)
     unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
+    n_held = int(sum(int(c["fixed"].sum()) for c in cams))  # pixels held at their known albedo
     per_target: dict[str, dict] = {}
     for p, c in enumerate(cams):
         tr, rows = c["tr"], c["rows"]
@@ -443,7 +444,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
             info = {
                 "method": params.method, "albedo": "unknown", "scale_ambiguous": bool(res.scale_ambiguous),
                 "note": SCALE_NOTE if res.scale_ambiguous else SCALE_PINNED_NOTE,
-                "pixels_albedo_known": int(sum(int(cc["fixed"].sum()) for cc in cams)),
+                "pixels_albedo_known": n_held,
                 "illumination": ill, "cameras_in_problem": len(cams), "illuminations_in_problem": L,
                 "targets_in_problem": [t for cc in cams for t in cc["targets"]],
                 "texels": int(comp.texel_index.size), "pixels_used": int(rows.size),
