@@ -108,7 +108,9 @@ class _Factor:
     def __init__(self, S: np.ndarray, jitter0: float = 1e-13):
         self.S = S
         self.jitter = 0.0
-        c, info = lapack.dpotrf(S, lower=0, clean=1, overwrite_a=0)
+        # S is symmetric: hand LAPACK its transpose, a Fortran-ordered view of the same matrix (a plain copy
+        # inside the wrapper instead of a transposing one)
+        c, info = lapack.dpotrf(S.T if S.flags.c_contiguous else S, lower=0, clean=1, overwrite_a=0)
         if info != 0:
             dmax = float(np.max(np.abs(np.diag(S)))) if S.size else 1.0
             dmax = dmax if dmax > 0 else 1.0
@@ -191,7 +193,7 @@ class _SchurFree:
         stats.max_jitter = max(stats.max_jitter, self.fac.jitter)
         stats.largest_block = max(stats.largest_block, Q.shape[0])
         self.X0 = self.fac.solve(self.B, refine=1 if self.refine else 0)  # (N, C) unconstrained solutions
-        self.W = np.zeros_like(Q)
+        self.W = np.empty(Q.shape, order="F")  # columns filled on demand (``have``); never read unfilled
         self.have = np.zeros(Q.shape[0], dtype=bool)
 
     def _w(self, Z: np.ndarray) -> np.ndarray:
@@ -327,7 +329,7 @@ def solve_exact(
     use_schur = False
     with single_blas_thread():
         if live.size:
-            Ql = Q[np.ix_(live, live)]
+            Ql = Q if live.size == n else Q[np.ix_(live, live)]
             Bl = B2[live]
             dl = d[live]
             bscale = np.max(np.abs(Bl), axis=0)
@@ -351,10 +353,14 @@ def solve_exact(
                 limit = live.size // 3
 
                 def guarded(F_, cols_, X_, G_):
-                    if (~F_[:, cols_]).sum(axis=0).max(initial=0) > limit:  # many zeros: blocks are cheaper
-                        _solve_free(Ql, Bl, F_, cols_, X_, G_, stats)
-                    else:
-                        free(F_, cols_, X_, G_)
+                    # per column: many zeros make a Cholesky of its (small) free block cheaper than the Schur
+                    # complement over its zero set
+                    cols_ = np.asarray(cols_)
+                    many = (~F_[:, cols_]).sum(axis=0) > limit
+                    if many.any():
+                        _solve_free(Ql, Bl, F_, cols_[many], X_, G_, stats)
+                    if not many.all():
+                        free(F_, cols_[~many], X_, G_)
 
                 guarded(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=guarded)

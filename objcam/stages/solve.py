@@ -241,7 +241,7 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
                 # one Gram matrix per (A, channel, usable pixels, weights): shared by every channel of a grey A
                 # and by every target that shares the camera and the valid mask
                 key = (str(tr.folder), c, hash(use.tobytes()), ls, lr)
-                Ac = tr.A[c][use]
+                Ac = tr.A[c] if use.all() else tr.A[c][use]  # a mask copies A's 16k x 1k floats
                 if key not in gram_cache:
                     # the transport stage stored A^T A over all kept pixels; remove the few excluded rows
                     grams = tr.gram() if grams is None else grams
@@ -254,7 +254,7 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
                 Q = gram_cache[key]
                 chans = [0, 1, 2] if C == 1 else [c]
                 Yc = y[use][:, chans]
-                B = solvers.rhs(Ac, Yc)
+                B = solvers.rhs(Ac, Yc, fast=True)
                 res = (solvers.solve_exact if params.method == "exact" else solvers.solve_paper)(Q, B)
                 X[:, chans] = res.x
                 kkt[chans], iters = res.kkt_residual, max(iters, res.iterations)
@@ -320,7 +320,7 @@ def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, l
             G = G - solvers.gram(tr.A[c][~use])
         ch = [0, 1, 2] if C == 1 else [c]
         grams.append(G)
-        rhs.append(solvers.rhs(tr.A[c][use], Y[:, ch]))
+        rhs.append(solvers.rhs(tr.A[c] if use.all() else tr.A[c][use], Y[:, ch], fast=True))
         chans.append(ch)
     ls_abs, lr_abs = solvers.absolute_weights(grams[0] if C == 1 else sum(grams) / C, ls, lr)
     D = solvers.difference_operator(grid, tr.texel_index)
