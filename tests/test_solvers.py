@@ -130,6 +130,27 @@ def test_gram_and_rhs_blocked_match_dense(monkeypatch):
     assert rhs(A, Y[:, 0]).shape == (37,)
 
 
+def test_rhs_fast_float32_blocks_and_sparse_prior_match_dense():
+    """A^T Y in float32 blocks accumulated in float64 is within float32 precision of the float64 product; the
+    prior added sparsely to the Gram matrix equals the dense formula."""
+    rng = np.random.default_rng(3)
+    A = rng.random((5000, 61)).astype(np.float32)  # more than one 2048-row block
+    Y = rng.random((5000, 3))
+    ref = A.astype(np.float64).T @ Y
+    fast = rhs(A, Y, fast=True)
+    err = np.abs(fast - ref).max() / np.abs(ref).max()
+    assert fast.dtype == np.float64 and 1e-12 < err < 1e-6  # float32 products, not float64 ones
+    assert rhs(A, Y[:, 0], fast=True).shape == (61,)
+    assert np.array_equal(rhs(A.astype(np.float64), Y, fast=True), rhs(A.astype(np.float64), Y))  # float64: exact path
+    grid = EnvGrid(8)
+    keep = np.arange(61)
+    D = difference_operator(grid, keep)
+    G = gram(A)
+    Q = regularized_gram(G, D, 0.3, 0.01)
+    dense = G + 0.3 * (D.T @ D).toarray() + 0.01 * np.eye(61)
+    assert np.allclose(Q, dense, rtol=1e-14, atol=1e-14 * np.abs(dense).max())
+
+
 def test_objective_from_gram_form_matches_direct():
     rng = np.random.default_rng(1)
     grid = EnvGrid(3)
@@ -394,3 +415,30 @@ def test_schur_free_blocks_match_per_block_cholesky_and_scipy(zeros):
     # warm start from the answer: one round, same x
     warm = solve_exact(Q, B, schur=True, passive0=fast.x > 0)
     assert warm.iterations == 1 and np.allclose(warm.x, fast.x, rtol=1e-10, atol=1e-10 * np.abs(fast.x).max())
+
+
+def test_exact_solve_takes_the_path_each_column_needs():
+    """Columns with many zeros (per-block Cholesky) and with few (Schur complement) in one call: each reaches the
+    exact minimiser it reaches alone and the one of the per-block method."""
+    rng = np.random.default_rng(11)
+    grid = EnvGrid(16)
+    keep = np.arange(400)
+    n, m = keep.size, 700
+    A = rng.random((m, n)) * (rng.random((m, n)) < 0.3)
+    X_true = rng.random((n, 2))
+    X_true[rng.random(n) < 0.7, 1] = 0.0  # the second column: most texels dark
+    Y = A @ X_true + 0.02 * rng.standard_normal((m, 2))
+    Y[:, 1] -= 0.3  # ... and driven below zero, so its zero set is large
+    G = A.T @ A
+    ls, lr = absolute_weights(G, 1e-4, 1e-6)
+    Q = regularized_gram(G, difference_operator(grid, keep), ls, lr)
+    B = A.T @ Y
+    both = solve_exact(Q, B, schur=True)
+    zeros = (both.x == 0).sum(axis=0)
+    assert zeros[0] < n // 3 < zeros[1]  # one column on each side of the switch
+    assert np.all(both.kkt_residual <= KKT_TOL) and both.converged
+    for c in range(2):
+        alone = solve_exact(Q, B[:, c], schur=True)
+        assert np.allclose(both.x[:, c], alone.x[:, 0], rtol=1e-9, atol=1e-9 * np.abs(alone.x).max())
+    blocks = solve_exact(Q, B, schur=False)
+    assert np.allclose(both.x, blocks.x, rtol=1e-9, atol=1e-9 * np.abs(blocks.x).max())
