@@ -421,7 +421,8 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         if not more:
             break
         res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape,
-                                       res.rho[p]) for p, c in enumerate(cams)], grid, comp.texel_index, setup,
+                                       res.rho[p], c["fixed"]) for p, c in enumerate(cams)], grid, comp.texel_index,
+                                     setup,
                                      sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
         for r in more:
             r["objective_after"] = float(np.sum(res.objective))
