@@ -16,7 +16,7 @@ from objcam.pipeline.stage import StageInputs, StageOutputs
 
 NAME = "transport"
 DEPS = ("scene",)
-VERSION = "1"
+VERSION = "2"
 # the code whose changes invalidate cached transport artifacts
 CODE_DEPS = ("objcam.transport", "objcam.render", "objcam.scene", "objcam.envmap", "objcam.camera")
 

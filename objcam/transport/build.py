@@ -172,6 +172,12 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                 gi = GatherIndirect(geo, parts, texel_index, s.env_height, channels, gs, batch_rays=s.batch_rays)
                 add_to_columns(folder, lambda a, b: gi.columns(a, b))
                 metrics.update(gi.metrics())
+                if parts.unknown_albedo().any() and geo.plane is not None:
+                    # the support's bounce albedo was a guess: keep what redoing its light needs
+                    from objcam.transport.storage import write_bounce
+
+                    write_bounce(folder, gi.bounce_parts())
+                    metrics["bounce_parts"] = True
             elif s.indirect == "path":
                 detail = detail_pixels(parts.object_fraction(), samples.pixel_index, (hp, wp),
                                        s.correction_detail_px)

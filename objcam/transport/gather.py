@@ -498,6 +498,19 @@ class GatherIndirect:
                                       salt=1) if self.bounces else None
         self.dm = DirectModel(geo, self.nodes.samples, env_height, self.channels, rays=s.node_shadow_rays,
                               seed=s.seed + 1, batch_rays=batch_rays, refine=False)
+        # the plane cell (live node row) under each kept pixel, -1 where it sees the object or no plane: what a
+        # later albedo estimate of those pixels says about the cells' bounce albedo (bounce_parts)
+        self.pixel_node = np.full(m, -1, np.int64)
+        if self.nodes.grid is not None:
+            for rows, ps in parts.parts:
+                on_plane = ps.hit & ~ps.on_object
+                first = np.argmax(on_plane, axis=1)
+                ok = on_plane[np.arange(rows.size), first]
+                xy = ps.pos[np.arange(rows.size), first, :2]
+                cell = self.nodes.grid.cell_of(xy[ok])
+                node = np.where(cell >= 0, self.nodes.live[self.nodes.n_object + np.maximum(cell, 0)], -1)
+                self.pixel_node[rows[ok]] = node
+        self.E = None  # (C, S, N) float32: the nodes' direct light of every column, kept for bounce_parts
         self.seconds_setup = time.perf_counter() - t0
         self.seconds_columns = 0.0
 
@@ -506,6 +519,9 @@ class GatherIndirect:
         t0 = time.perf_counter()
         tex = self.texel_index[a:b]
         E = self.dm.columns(tex)  # (C, S, B): direct light leaving each node
+        if self.E is None:
+            self.E = np.zeros((self.channels, E.shape[1], self.texel_index.size), np.float32)
+        self.E[:, :, a:b] = E
         out = []
         for c in range(self.channels):
             L = E[c]
@@ -517,6 +533,23 @@ class GatherIndirect:
         self.seconds_columns += time.perf_counter() - t0
         return np.stack(out).astype(np.float32)
 
+    def bounce_parts(self) -> dict[str, np.ndarray]:
+        """What :func:`bounce_delta` needs to redo the indirect columns for new plane-cell albedos (after every
+        column was computed): the gather matrices and the nodes' direct light, with the albedos they hold."""
+        if self.E is None:
+            raise RuntimeError("bounce_parts: compute the columns first")
+        out: dict[str, np.ndarray] = {"E": self.E, "node_rho": self.nodes.rho.astype(np.float32),
+                                      "node_unknown": self.nodes.samples.unknown.any(axis=1),
+                                      "pixel_node": self.pixel_node, "bounces": np.array(self.bounces)}
+        for c in range(self.channels):
+            for name, W in (("W_pix", self.W_pix[c]), ("W_node", self.W_node[c] if self.W_node else None)):
+                if W is None:
+                    continue
+                W = W.tocsr()
+                out.update({f"{name}{c}_data": W.data, f"{name}{c}_indices": W.indices,
+                            f"{name}{c}_indptr": W.indptr, f"{name}{c}_shape": np.array(W.shape)})
+        return out
+
     def metrics(self) -> dict:
         n = self.nodes
         return {"gather_nodes": n.count, "gather_nodes_object": int((n.live[:n.n_object] >= 0).sum()),
@@ -526,3 +559,64 @@ class GatherIndirect:
                 "gather_bounces": self.bounces + 1, "gather_setup_seconds": round(self.seconds_setup, 3),
                 "gather_columns_seconds": round(self.seconds_columns, 3),
                 "gather_node_direct_rays": self.dm.stats.rays_traced}
+
+
+def _csr(parts: dict, name: str) -> sp.csr_matrix | None:
+    if f"{name}_data" not in parts:
+        return None
+    return sp.csr_matrix((parts[f"{name}_data"], parts[f"{name}_indices"], parts[f"{name}_indptr"]),
+                         shape=tuple(int(v) for v in parts[f"{name}_shape"]))
+
+
+def _node_light(parts: dict, scale: np.ndarray, channel: int, dtype=np.float64) -> np.ndarray:
+    """(S, N) light leaving the gather's nodes, summed over the bounces, with every node's albedo multiplied by
+    ``scale`` (S,): E and the node-to-node gather scale by row (the node reflects)."""
+    s = np.asarray(scale, dtype=dtype)[:, None]
+    L = parts["E"][channel].astype(dtype) * s
+    acc = L.copy()
+    W_node = _csr(parts, f"W_node{channel}")
+    for _ in range(int(parts["bounces"])):
+        L = s * (W_node @ L)
+        acc += L
+    return acc
+
+
+def bounce_indirect(parts: dict, scale: np.ndarray, channel: int = 0) -> np.ndarray:
+    """(M, N) float64 indirect columns of :class:`GatherIndirect` with every node's albedo multiplied by
+    ``scale`` (S,); the pixels' gather does not scale (the receiving pixel's own albedo is kept as it was, 1 where
+    unknown: A = diag(rho) A')."""
+    return np.asarray(_csr(parts, f"W_pix{channel}") @ _node_light(parts, scale, channel))
+
+
+def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float = 1e-3
+                 ) -> tuple[np.ndarray | None, dict]:
+    """The change of A' (rows ``rows``, this group's N texels) when the plane cells of unknown albedo reflect with
+    the mean of the albedo estimated at the pixels over them, instead of the albedo the transport assumed.
+
+    rho: (len(rows), C') the estimate at ``rows`` (grey: mean over channels). Returns (dA (len(rows), N) float32
+    per channel-mean, or None when no cell is seen) and a summary dict."""
+    pn = parts["pixel_node"][rows]
+    old = parts["node_rho"].mean(axis=1).astype(np.float64)
+    seen = (pn >= 0)
+    free = parts["node_unknown"]
+    grey = np.asarray(rho, np.float64).reshape(rows.size, -1).mean(axis=1)
+    n_nodes = old.size
+    cnt = np.bincount(pn[seen], minlength=n_nodes)
+    tot = np.bincount(pn[seen], weights=grey[seen], minlength=n_nodes)
+    upd = (cnt > 0) & free & (old > 0)
+    if not upd.any():
+        return None, {"cells_updated": 0}
+    new = old.copy()
+    new[upd] = np.clip(tot[upd] / cnt[upd], rho_min, 1.0)
+    scale = np.ones(n_nodes)
+    scale[upd] = new[upd] / old[upd]
+    C = parts["E"].shape[0]
+    # one pass of the pixels' gather over the difference of the nodes' light, in float32 (the change is a few % of
+    # the indirect part, itself a few % of A), for the wanted rows only
+    dA = np.zeros((rows.size, parts["E"].shape[2]), np.float32)
+    for c in range(C):
+        diff = (_node_light(parts, scale, c, np.float32) - _node_light(parts, np.ones(n_nodes), c, np.float32))
+        dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ diff) / C
+    return dA, {"cells_updated": int(upd.sum()),
+                                   "cell_albedo_before": float(np.mean(old[upd])),
+                                   "cell_albedo_after": float(np.mean(new[upd]))}

@@ -33,6 +33,7 @@ from objcam.envmap import EnvGrid
 FORMAT = 1
 INDEX = "index.json"
 GRAM = "gram.npy"  # (C, N, N) float64 A_c^T A_c, so solves skip the O(M N^2) product
+BOUNCE = "bounce.npz"  # the node gather's parts (objcam.transport.gather.bounce_parts), when A has them
 ROW_CHUNK = 32768
 
 _META_ARRAYS = ("pixel_index", "texel_index", "directions", "solid_angle", "albedo", "unknown_albedo", "coverage",
@@ -241,6 +242,15 @@ class Transport:
 
         return np.stack([gram(self.A[c]) for c in range(self.channels)])
 
+    def bounce_parts(self) -> dict | None:
+        """The interreflection gather's parts (objcam.transport.gather.GatherIndirect.bounce_parts), so a later
+        albedo estimate can redo the light the support throws (:func:`objcam.transport.gather.bounce_delta`);
+        None when A has none (direct light, or the path-traced correction)."""
+        if self.folder is None or not (self.folder / BOUNCE).is_file():
+            return None
+        with np.load(self.folder / BOUNCE) as z:
+            return {k: z[k] for k in z.files}
+
     def rho_free(self) -> np.ndarray:
         """A' = A / rho per pixel and channel where rho > 0 (0 elsewhere), shape (C, M, N)."""
         rho = self.albedo.T[: self.channels] if self.channels == 3 else self.albedo.mean(axis=1)[None]
@@ -292,3 +302,14 @@ def load_transport(folder: str | Path, target_name: str, load_A: bool = True) ->
         raise StageError(f"no transport matrix for target {target_name!r} (have {sorted(index['targets'])})",
                          Path(folder) / INDEX, "rerun the transport stage after changing the targets")
     return load_group(Path(folder) / sub, load_A=load_A)
+
+
+def write_bounce(folder: str | Path, parts: dict) -> None:
+    """Store the gather's parts beside A as ``bounce.npz`` (atomically)."""
+    import io
+
+    from objcam.image_io import atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez(buf, **parts)
+    atomic_write_bytes(Path(folder) / BOUNCE, buf.getvalue())
