@@ -564,9 +564,12 @@ def _refit_bounce(cams: list[dict], comp, res, params: Params) -> list[dict]:
         alb = tr.albedo[c["rows"]].mean(axis=1)
         dA = dA / np.where(alb > 0, alb, 1.0)[:, None]
         own = np.asarray(tr.texel_index)
+        # the delta is from the transport's guess: apply it to the A' as built, not to a previous refit's
+        base = c.setdefault("A_built", c["A"].copy())
         if own.size == comp.texel_index.size and np.array_equal(own, comp.texel_index):
-            c["A"] = np.ascontiguousarray(c["A"] + dA, dtype=np.float32)
+            c["A"] = np.ascontiguousarray(base + dA, dtype=np.float32)
         else:
+            c["A"] = base.copy()
             c["A"][:, np.searchsorted(comp.texel_index, own)] += dA
         rel = float(np.linalg.norm(dA) / max(np.linalg.norm(c["A"]), 1e-30))
         out.append({"camera": p, **info, "relative_change_of_A": rel,
