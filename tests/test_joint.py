@@ -431,3 +431,18 @@ def test_fixed_pixels_hold_their_albedo_and_pin_the_scale(scene, lp):
     assert err["pinned"] < 0.03 and env_err["pinned"] < 0.35, (err, env_err)
     # the free solve's scale is the regularisers' choice (measured 0.18)
     assert err["free"] > 5 * err["pinned"] and env_err["free"] > env_err["pinned"], (err, env_err)
+
+
+def test_automatic_weights_keep_the_fixed_pixels_held(scene):
+    """solve_joint_auto with a rule (provisional solve, criterion, final solve): the final solve still holds the
+    pixels of known albedo, so the scale stays pinned (it used to drop them after the provisional solve)."""
+    from objcam.solvers.jointauto import JointSetup, solve_joint_auto
+
+    grid, keep, blocks, x_true, rho_true = scene
+    b = blocks[0]
+    fixed = np.random.default_rng(3).random(b.A.shape[0]) < 1 / 7
+    rho0 = np.where(fixed[:, None], rho_true[0], 0.5)
+    res, auto = solve_joint_auto([CameraBlock(b.A, b.Y, b.pixel_index, b.image_shape, rho0, fixed)], grid, keep,
+                                 JointSetup(rule="gcv", tol=1e-4, prior="smooth"))
+    assert auto["rule"] == "gcv" and not res.scale_ambiguous
+    np.testing.assert_array_equal(res.rho[0][fixed], np.clip(rho_true[0][fixed], DEFAULT_RHO_MIN, 1.0))
