@@ -244,3 +244,19 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
     _refit_bounce([cam], comp, res, Params())
     assert once and not np.array_equal(A1, A)  # the refit changed A'
     np.testing.assert_array_equal(cam["A"], A1)  # and a second one from the same estimate leaves it there
+
+
+def test_a_refit_that_finds_nothing_to_redo_still_converges_to_the_requested_tolerance(capture, tmp_path,
+                                                                                        monkeypatch):
+    """The first solve stops early (relative decrease 3e-2) when a bounce refit will follow; if the refit then has
+    no cell to redo, the solve is finished at the requested tolerance, not left at the early stop."""
+    import objcam.stages.solve as solve_stage
+
+    monkeypatch.setattr(solve_stage, "_refit_bounce", lambda *a, **k: [])
+    work = tmp_path / "auto"
+    assert main(["run", str(capture), "--until", "solve", "--work", str(work), "--quiet",
+                 "--set", "transport.model=auto", "--set", "transport.auto_noise=1e-6",
+                 "--set", "transport.env_height=8"]) == 0
+    info = json.loads((work / "solve" / "cam0_rot0" / "solve.json").read_text())
+    assert info["bounce_refits"] == [] and info["converged"]
+    assert f"< {solve_stage.JOINT_TOL:g}" in info["message"], info["message"]

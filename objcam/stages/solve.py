@@ -437,8 +437,10 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         alpha=params.alpha)
     t0 = time.perf_counter()
     # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone)
+    from objcam.transport.storage import BOUNCE
+
     refit_next = (params.bounce_refits > 0 and params.method == "exact"
-                  and any(c["tr"].folder is not None and (c["tr"].folder / "bounce.npz").is_file() for c in cams))
+                  and any(c["tr"].folder is not None and (c["tr"].folder / BOUNCE).is_file() for c in cams))
     first = dataclasses.replace(setup, tol=max(setup.tol, BOUNCE_FIRST_TOL)) if refit_next else setup
     res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, c["rho0"],
                                    c["fixed"]) for c in cams], grid, comp.texel_index, first,
@@ -462,6 +464,12 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         for r in more:
             r["objective_after"] = float(np.sum(res.objective))
         refits += more
+    if first is not setup and not refits and not res.diverged:
+        # the first solve stopped early for a refit that found no cell to redo: finish it at the requested tol
+        res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape,
+                                       res.rho[p], c["fixed"]) for p, c in enumerate(cams)], grid, comp.texel_index,
+                                     setup,
+                                     sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
     solve_s = time.perf_counter() - t0
     # a diverging iteration (only the paper's damped steps can: the exact alternation is monotone) is stopped by
     # the solver, which returns the best estimate it saw: that is what is written, marked diverged, and the stage
