@@ -196,6 +196,8 @@ def test_silhouette_pixels_are_left_out_of_the_joint_fit(capture, tmp_path):
     assert mixed.sum() > 5  # the bunny's silhouette
     info = json.loads((capture / "objcam" / "solve" / "cam0_rot0" / "solve.json").read_text())
     assert info["pixels_excluded_mixed"] == int(mixed.sum())
+    stage = json.loads((capture / "objcam" / "solve" / "stage.json").read_text())
+    assert f"{int(mixed.sum())} silhouette pixels left out" in stage["summary"]
     mask = read_exr(capture / "objcam" / "solve" / "cam0_rot0" / "prediction.exr")[..., :3].reshape(-1, 3)
     assert np.all(mask[tr.pixel_index[mixed]] == 0)  # not fitted, not predicted
     work = tmp_path / "fit"
@@ -228,6 +230,7 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
                  "--set", "transport.env_height=8"]) == 0
     info = json.loads((work / "solve" / "cam0_rot0" / "solve.json").read_text())
     assert len(info["bounce_refits"]) == 1 and info["bounce_refits"][0]["cells_updated"] > 0
+    assert "support light redone 1x" in json.loads((work / "solve" / "stage.json").read_text())["summary"]
     tr = load_transport(work / "transport", "cam0_rot0")
     assert tr.bounce_parts() is not None
     from objcam.solvers.assemble import grey_rho_free

@@ -439,7 +439,12 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone)
     from objcam.transport.storage import BOUNCE
 
-    refit_next = (params.bounce_refits > 0 and params.method == "exact"
+    # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
+    # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
+    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); no refit then (it measured
+    # +12 s there for nothing)
+    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
+    refit_next = (params.bounce_refits > 0 and params.method == "exact" and not unconstrained
                   and any(c["tr"].folder is not None and (c["tr"].folder / BOUNCE).is_file() for c in cams))
     first = dataclasses.replace(setup, tol=max(setup.tol, BOUNCE_FIRST_TOL)) if refit_next else setup
     res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, c["rho0"],
@@ -449,7 +454,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     refits: list[dict] = []
     first_info = {"sweeps": int(res.iterations), "seconds": round(time.perf_counter() - t0, 3),
                   "objective": float(np.sum(res.objective))}
-    for _ in range(params.bounce_refits):
+    for _ in range(params.bounce_refits if refit_next else 0):
         t1 = time.perf_counter()
         more = _refit_bounce(cams, comp, res, params)
         for r in more:
@@ -476,10 +481,6 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     # summary says so in one line (run() below)
 
     mask = _texel_mask(grid, comp.texel_index)
-    # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
-    # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
-    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given)
-    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
     n_held = int(sum(int(c["fixed"].sum()) for c in cams))  # pixels held at their known albedo
     per_target: dict[str, dict] = {}
     for p, c in enumerate(cams):
@@ -622,6 +623,13 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     joint = any(v.get("albedo") == "unknown" for v in per_target.values())
     ambiguous = any(bool(v.get("scale_ambiguous", True)) for v in per_target.values() if v.get("albedo") == "unknown")
     div = next((v for v in per_target.values() if v.get("diverged")), None)
+    # every target repeats its camera's count once per illumination of its problem
+    unk = [v for v in per_target.values() if v.get("albedo") == "unknown"]
+    n_mixed = round(sum(v.get("pixels_excluded_mixed", 0) / max(v.get("illuminations_in_problem", 1), 1)
+                        for v in unk))
+    # bounce_refits holds one entry per refit and camera
+    n_refit = max((len(v["bounce_refits"]) // max(len({r["camera"] for r in v["bounce_refits"]}), 1)
+                   for v in unk if v.get("bounce_refits")), default=0)
     free = [k for k, v in per_target.items() if v.get("envmap_constrained_by_data") is False]
     summary = ((f"WARNING: joint solve ({params.method}) {div['message']}; fix: use solve.method=exact (monotone) "
                 "or a smaller solve.alpha. " if div else "")
@@ -632,6 +640,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                + f"{len(per_target)} target(s), {params.method}"
                + ((", joint albedo + envmap (envmap known only up to scale)" if ambiguous else
                    ", joint albedo + envmap (scale fixed by the pixels of known albedo)") if joint else "")
+               + (f", {n_mixed} silhouette pixels left out" if n_mixed else "")
+               + (f", support light redone {n_refit}x from the estimated albedo" if n_refit else "")
                + f", {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
                + ", ".join(f"{k}: image residual {v['relative_image_residual']:.3f}" for k, v in per_target.items()))
     metrics = {"targets": per_target, "seconds": round(total, 4)}
