@@ -454,7 +454,9 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     refits: list[dict] = []
     first_info = {"sweeps": int(res.iterations), "seconds": round(time.perf_counter() - t0, 3),
                   "objective": float(np.sum(res.objective))}
-    for _ in range(params.bounce_refits if refit_next else 0):
+    n_refits = params.bounce_refits if refit_next else 0
+    loose = first is not setup  # res comes from a solve stopped early (a refit was to follow)
+    for i in range(n_refits):
         t1 = time.perf_counter()
         more = _refit_bounce(cams, comp, res, params)
         for r in more:
@@ -462,15 +464,18 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
             r["first_solve"] = first_info
         if not more:
             break
+        # every solve but the last one stops early too: another refit redoes its final decimals
+        step = first if i < n_refits - 1 else setup
         res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape,
                                        res.rho[p], c["fixed"]) for p, c in enumerate(cams)], grid, comp.texel_index,
-                                     setup,
+                                     step,
                                      sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
+        loose = step is not setup
         for r in more:
             r["objective_after"] = float(np.sum(res.objective))
         refits += more
-    if first is not setup and not refits and not res.diverged:
-        # the first solve stopped early for a refit that found no cell to redo: finish it at the requested tol
+    if loose and not res.diverged:
+        # the last solve stopped early for a refit that found no cell to redo: finish it at the requested tol
         res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape,
                                        res.rho[p], c["fixed"]) for p, c in enumerate(cams)], grid, comp.texel_index,
                                      setup,
