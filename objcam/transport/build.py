@@ -169,11 +169,13 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
 
                 gs = GatherSettings(rays=s.gather_rays, node_rays=s.gather_node_rays, max_depth=s.auto_max_depth,
                                     seed=s.seed)
-                gi = GatherIndirect(geo, parts, texel_index, s.env_height, channels, gs, batch_rays=s.batch_rays)
+                # the support's bounce albedo is a guess: keep what redoing its light needs (bounce.npz)
+                guessed = bool(parts.unknown_albedo().any()) and geo.plane is not None
+                gi = GatherIndirect(geo, parts, texel_index, s.env_height, channels, gs, batch_rays=s.batch_rays,
+                                    keep_parts=guessed)
                 add_to_columns(folder, lambda a, b: gi.columns(a, b))
                 metrics.update(gi.metrics())
-                if parts.unknown_albedo().any() and geo.plane is not None:
-                    # the support's bounce albedo was a guess: keep what redoing its light needs
+                if guessed:
                     from objcam.transport.storage import write_bounce
 
                     write_bounce(folder, gi.bounce_parts())

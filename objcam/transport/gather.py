@@ -474,7 +474,10 @@ class GatherIndirect:
     """Indirect-light columns of A for the pixels of ``pixels`` by the node gather (module docstring)."""
 
     def __init__(self, geo: SceneGeometry, pixels: SampleParts | PixelSamples, texel_index: np.ndarray,
-                 env_height: int, channels: int, settings: GatherSettings | None = None, batch_rays: int = 1 << 24):
+                 env_height: int, channels: int, settings: GatherSettings | None = None, batch_rays: int = 1 << 24,
+                 keep_parts: bool = False):
+        """keep_parts: keep what :meth:`bounce_parts` returns (the nodes' direct light of every column, ~S x N
+        floats, and the plane cell under each pixel), for a support whose bounce albedo is a guess."""
         from objcam.transport.direct import DirectModel
 
         s = settings or GatherSettings()
@@ -500,8 +503,9 @@ class GatherIndirect:
                               seed=s.seed + 1, batch_rays=batch_rays, refine=False)
         # the plane cell (live node row) under each kept pixel, -1 where it sees the object or no plane: what a
         # later albedo estimate of those pixels says about the cells' bounce albedo (bounce_parts)
+        self.keep_parts = bool(keep_parts)
         self.pixel_node = np.full(m, -1, np.int64)
-        if self.nodes.grid is not None:
+        if self.keep_parts and self.nodes.grid is not None:
             for rows, ps in parts.parts:
                 on_plane = ps.hit & ~ps.on_object
                 first = np.argmax(on_plane, axis=1)
@@ -519,25 +523,20 @@ class GatherIndirect:
         t0 = time.perf_counter()
         tex = self.texel_index[a:b]
         E = self.dm.columns(tex)  # (C, S, B): direct light leaving each node
-        if self.E is None:
-            self.E = np.zeros((self.channels, E.shape[1], self.texel_index.size), np.float32)
-        self.E[:, :, a:b] = E
-        out = []
-        for c in range(self.channels):
-            L = E[c]
-            acc = L.copy()
-            for _ in range(self.bounces):
-                L = self.W_node[c] @ L
-                acc += L
-            out.append(self.W_pix[c] @ acc)
+        if self.keep_parts:
+            if self.E is None:
+                self.E = np.zeros((self.channels, E.shape[1], self.texel_index.size), np.float32)
+            self.E[:, :, a:b] = E
+        out = [self.W_pix[c] @ _propagate(E[c], self.W_node[c] if self.bounces else None, self.bounces)
+               for c in range(self.channels)]
         self.seconds_columns += time.perf_counter() - t0
         return np.stack(out).astype(np.float32)
 
     def bounce_parts(self) -> dict[str, np.ndarray]:
         """What :func:`bounce_delta` needs to redo the indirect columns for new plane-cell albedos (after every
         column was computed): the gather matrices and the nodes' direct light, with the albedos they hold."""
-        if self.E is None:
-            raise RuntimeError("bounce_parts: compute the columns first")
+        if not self.keep_parts or self.E is None:
+            raise RuntimeError("bounce_parts: build with keep_parts=True and compute the columns first")
         out: dict[str, np.ndarray] = {"E": self.E, "node_rho": self.nodes.rho.astype(np.float32),
                                       "node_unknown": self.nodes.samples.unknown.any(axis=1),
                                       "pixel_node": self.pixel_node, "bounces": np.array(self.bounces)}
@@ -568,17 +567,23 @@ def _csr(parts: dict, name: str) -> sp.csr_matrix | None:
                          shape=tuple(int(v) for v in parts[f"{name}_shape"]))
 
 
-def _node_light(parts: dict, scale: np.ndarray, channel: int, dtype=np.float64) -> np.ndarray:
-    """(S, N) light leaving the gather's nodes, summed over the bounces, with every node's albedo multiplied by
-    ``scale`` (S,): E and the node-to-node gather scale by row (the node reflects)."""
-    s = np.asarray(scale, dtype=dtype)[:, None]
-    L = parts["E"][channel].astype(dtype) * s
+def _propagate(E: np.ndarray, W_node: sp.csr_matrix | None, bounces: int, scale: np.ndarray | None = None
+               ) -> np.ndarray:
+    """(S, B) light leaving the nodes, summed over their direct light E (S, B) and ``bounces`` node-to-node
+    gathers; ``scale`` (S,) multiplies every node's albedo (E and each gather scale by row: the node reflects)."""
+    s = None if scale is None else scale[:, None]
+    L = E if s is None else E * s
     acc = L.copy()
-    W_node = _csr(parts, f"W_node{channel}")
-    for _ in range(int(parts["bounces"])):
-        L = s * (W_node @ L)
+    for _ in range(bounces):
+        L = W_node @ L if s is None else s * (W_node @ L)
         acc += L
     return acc
+
+
+def _node_light(parts: dict, scale: np.ndarray, channel: int, dtype=np.float64) -> np.ndarray:
+    """(S, N) :func:`_propagate` of the stored parts of one channel, with node albedos scaled by ``scale``."""
+    return _propagate(parts["E"][channel].astype(dtype), _csr(parts, f"W_node{channel}"), int(parts["bounces"]),
+                      np.asarray(scale, dtype=dtype))
 
 
 def bounce_indirect(parts: dict, scale: np.ndarray, channel: int = 0) -> np.ndarray:
@@ -617,6 +622,5 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
     for c in range(C):
         diff = (_node_light(parts, scale, c, np.float32) - _node_light(parts, np.ones(n_nodes), c, np.float32))
         dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ diff) / C
-    return dA, {"cells_updated": int(upd.sum()),
-                                   "cell_albedo_before": float(np.mean(old[upd])),
-                                   "cell_albedo_after": float(np.mean(new[upd]))}
+    return dA, {"cells_updated": int(upd.sum()), "cell_albedo_before": float(np.mean(old[upd])),
+                "cell_albedo_after": float(np.mean(new[upd]))}
