@@ -435,21 +435,24 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
         rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=params.tol, max_iter=params.max_iter,
         alpha=params.alpha)
-    t0 = time.perf_counter()
-    # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone)
-    from objcam.transport.storage import BOUNCE
+    sigma = [s for c in cams for s in c["sigma"] if s is not None] or None
 
+    def solve(rho, stp):
+        """The joint solve of this problem's cameras (their current A') from the albedo ``rho`` (one per camera)."""
+        return solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, r,
+                                  c["fixed"]) for c, r in zip(cams, rho)], grid, comp.texel_index, stp, sigma=sigma)
+
+    t0 = time.perf_counter()
     # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
     # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
     # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); no refit then (it measured
     # +12 s there for nothing)
     unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
     refit_next = (params.bounce_refits > 0 and params.method == "exact" and not unconstrained
-                  and any(c["tr"].folder is not None and (c["tr"].folder / BOUNCE).is_file() for c in cams))
+                  and any(c["tr"].has_bounce_parts for c in cams))
+    # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone)
     first = dataclasses.replace(setup, tol=max(setup.tol, BOUNCE_FIRST_TOL)) if refit_next else setup
-    res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, c["rho0"],
-                                   c["fixed"]) for c in cams], grid, comp.texel_index, first,
-                                 sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
+    res, auto = solve([c["rho0"] for c in cams], first)
     # the support's light on the object was gathered at a guessed albedo: redo it from the estimate, solve again
     refits: list[dict] = []
     first_info = {"sweeps": int(res.iterations), "seconds": round(time.perf_counter() - t0, 3),
@@ -466,20 +469,14 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
             break
         # every solve but the last one stops early too: another refit redoes its final decimals
         step = first if i < n_refits - 1 else setup
-        res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape,
-                                       res.rho[p], c["fixed"]) for p, c in enumerate(cams)], grid, comp.texel_index,
-                                     step,
-                                     sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
+        res, auto = solve(res.rho, step)
         loose = step is not setup
         for r in more:
             r["objective_after"] = float(np.sum(res.objective))
         refits += more
     if loose and not res.diverged:
         # the last solve stopped early for a refit that found no cell to redo: finish it at the requested tol
-        res, auto = solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape,
-                                       res.rho[p], c["fixed"]) for p, c in enumerate(cams)], grid, comp.texel_index,
-                                     setup,
-                                     sigma=[s for c in cams for s in c["sigma"] if s is not None] or None)
+        res, auto = solve(res.rho, setup)
     solve_s = time.perf_counter() - t0
     # a diverging iteration (only the paper's damped steps can: the exact alternation is monotone) is stopped by
     # the solver, which returns the best estimate it saw: that is what is written, marked diverged, and the stage
@@ -575,7 +572,7 @@ def _refit_bounce(cams: list[dict], comp, res, params: Params) -> list[dict]:
             continue
         info.update(albedo_scale=k, albedo_scale_from=how)
         # A' = A / rho: the transport renders unknown albedo as 1, known pixels carry theirs
-        alb = tr.albedo[c["rows"]].mean(axis=1)
+        alb = tr.albedo[rows].mean(axis=1)
         dA = dA / np.where(alb > 0, alb, 1.0)[:, None]
         own = np.asarray(tr.texel_index)
         # the delta is from the transport's guess: apply it to the A' as built, not to a previous refit's

@@ -242,11 +242,16 @@ class Transport:
 
         return np.stack([gram(self.A[c]) for c in range(self.channels)])
 
+    @property
+    def has_bounce_parts(self) -> bool:
+        """Whether :meth:`bounce_parts` has something to load (without loading it)."""
+        return self.folder is not None and (self.folder / BOUNCE).is_file()
+
     def bounce_parts(self) -> dict | None:
         """The interreflection gather's parts (objcam.transport.gather.GatherIndirect.bounce_parts), so a later
         albedo estimate can redo the light the support throws (:func:`objcam.transport.gather.bounce_delta`);
-        None when A has none (direct light, or the path-traced correction)."""
-        if self.folder is None or not (self.folder / BOUNCE).is_file():
+        None when A has none (direct light, the path-traced correction, or every albedo known)."""
+        if not self.has_bounce_parts:
             return None
         with np.load(self.folder / BOUNCE) as z:
             return {k: z[k] for k in z.files}
