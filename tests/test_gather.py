@@ -111,14 +111,12 @@ def test_face_clusters_keep_sides_apart(scene):
         assert np.all(m @ mean > 0)
 
 
-def test_unknown_support_reflects_with_its_bounce_albedo(tmp_path):
-    """A support of unknown albedo is a receiver at albedo 1 (A = diag(rho) A') but lights the object with
-    UNKNOWN_BOUNCE_ALBEDO: the columns equal those of the same scene with that albedo known, the support's rows
-    divided by it."""
-    from objcam.transport.gather import UNKNOWN_BOUNCE_ALBEDO as RHO
-
-    cols = {}
-    for name, sup in (("unknown", None), ("known", (RHO, RHO, RHO))):
+def _unknown_and_known_support(tmp_path, rho_known: float) -> dict:
+    """The gather of two small scenes, the support's albedo unknown and known at ``rho_known``: per scene name
+    ("unknown", "known") its (M, 2) columns of two texels, the GatherIndirect (keeping its bounce parts) and the
+    pixel samples."""
+    runs = {}
+    for name, sup in (("unknown", None), ("known", (rho_known,) * 3)):
         folder = tmp_path / name
         cam = _write_artifact(folder, sup=sup)
         desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
@@ -126,11 +124,21 @@ def test_unknown_support_reflects_with_its_bounce_albedo(tmp_path):
         s = primary_samples(geo, cam, 1, 16, np.arange(SIZE * SIZE), SIZE, seed=0)
         s = s.subset(s.hit.any(axis=1))
         texels = np.array([1 * 2 * ENV_H + 3, 3 * 2 * ENV_H + 14])
-        gi = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(rays=64, object_rays=256))
-        # pixels wholly on the object, wholly on the support (mixed ones are a blend of both rules)
-        cols[name] = (gi.columns(0, texels.size)[0], (s.on_object & s.hit).all(axis=1),
-                      (~s.on_object & s.hit).all(axis=1))
-    (u, obj, sup), (k, _, _) = cols["unknown"], cols["known"]
+        gi = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(rays=64, object_rays=256), keep_parts=True)
+        runs[name] = (gi.columns(0, texels.size)[0], gi, s)
+    return runs
+
+
+def test_unknown_support_reflects_with_its_bounce_albedo(tmp_path):
+    """A support of unknown albedo is a receiver at albedo 1 (A = diag(rho) A') but lights the object with
+    UNKNOWN_BOUNCE_ALBEDO: the columns equal those of the same scene with that albedo known, the support's rows
+    divided by it."""
+    from objcam.transport.gather import UNKNOWN_BOUNCE_ALBEDO as RHO
+
+    runs = _unknown_and_known_support(tmp_path, RHO)
+    (u, _, s), (k, _, _) = runs["unknown"], runs["known"]
+    # pixels wholly on the object, wholly on the support (mixed ones are a blend of both rules)
+    obj, sup = (s.on_object & s.hit).all(axis=1), (~s.on_object & s.hit).all(axis=1)
     assert np.allclose(u[obj], k[obj], rtol=1e-4, atol=1e-9)
     assert np.allclose(u[sup] * RHO, k[sup], rtol=1e-4, atol=1e-9)
     assert u[obj].sum() > 0 and u[sup].sum() > 0
@@ -143,17 +151,7 @@ def test_bounce_parts_redo_the_support_light_for_a_new_albedo(tmp_path):
     from objcam.transport.gather import UNKNOWN_BOUNCE_ALBEDO as RHO, bounce_delta, bounce_indirect
 
     NEW = 0.8
-    runs = {}
-    for name, sup in (("unknown", None), ("known", (NEW, NEW, NEW))):
-        folder = tmp_path / name
-        cam = _write_artifact(folder, sup=sup)
-        desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
-        geo = SceneGeometry.load(desc, folder, env_height=ENV_H)
-        s = primary_samples(geo, cam, 1, 16, np.arange(SIZE * SIZE), SIZE, seed=0)
-        s = s.subset(s.hit.any(axis=1))
-        texels = np.array([1 * 2 * ENV_H + 3, 3 * 2 * ENV_H + 14])
-        gi = GatherIndirect(geo, s, texels, ENV_H, 1, GatherSettings(rays=64, object_rays=256))
-        runs[name] = (gi.columns(0, texels.size)[0], gi, s)
+    runs = _unknown_and_known_support(tmp_path, NEW)
     u, gi, s = runs["unknown"]
     k = runs["known"][0]
     parts = gi.bounce_parts()
