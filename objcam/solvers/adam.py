@@ -61,6 +61,69 @@ class AdamTargetResult:
     info: dict = field(default_factory=dict)
 
 
+@dataclass
+class AdamProblem:
+    """The unknowns and the objective F (module docstring) of one camera's targets, as Adam sees them.
+
+    ``objective`` evaluates F with the transport matrix A' in place of the renderer (noise-free), so it also
+    scores any other solver's (x, rho) on the very function Adam minimises (bench/ablation.py does, to say how far
+    Adam's plateau is from the optimum).
+    """
+
+    tr: object  # objcam.transport.storage.Transport of the camera
+    pix: np.ndarray  # (M,) flat pooled-image indices of the usable pixels (all targets valid)
+    Y: np.ndarray  # (L, M, 3) the targets' pixels
+    unknown: np.ndarray  # (M,) bool: albedo estimated
+    rho_known: np.ndarray  # (M, 3) the albedo where it is known (clipped into [1e-3, 1])
+    rho0: np.ndarray  # (M, 3) initial albedo: 0.5 where unknown
+    Ap: np.ndarray  # (M, N) float64 rho-free transport (grey; the channel mean of an RGB one)
+    DtD: object  # (N, N) sparse envmap smoothness D^T D
+    ls: float  # absolute weights: relative ones x s_data = mean(diag(A^T A)), A = diag(rho0) A'
+    lrr: float
+    lp: float  # relative albedo weight (x t_data)
+    G: object | None  # albedo smoothness operator, when lp > 0 and some albedo is unknown
+    t_data: float  # mean over pixels and channels of sum_l y^2
+
+    @classmethod
+    def build(cls, data: dict, names: list[str], st: AdamSettings) -> "AdamProblem":
+        """From the solve stage's loaded targets ``data`` ({target: (Transport, pooled, ok, y, use)})."""
+        from objcam.envmap import EnvGrid
+        from objcam.solvers.regularization import difference_operator
+
+        tr = data[names[0]][0]
+        use = np.logical_and.reduce([data[t][4] for t in names])
+        rows = np.flatnonzero(use)
+        Y = np.stack([data[t][3][rows] for t in names]).astype(np.float64)  # (L, M, 3)
+        unknown = tr.unknown_albedo[rows]
+        rho_known = np.clip(tr.albedo[rows].astype(np.float64), 1e-3, 1.0)
+        Ap = tr.rho_free()[:, rows]
+        Ap = (Ap[0] if Ap.shape[0] == 1 else Ap.mean(axis=0)).astype(np.float64)  # (M, N) for init and prediction
+        rho0 = np.where(unknown[:, None], 0.5, rho_known)
+        # relative weights as the exact solve's: to mean(diag(A^T A)), A = diag(rho0) A'
+        s_data = float(np.mean((rho0**2).mean(axis=1) @ (Ap * Ap)))
+        D = difference_operator(EnvGrid(tr.env_height), tr.texel_index)
+        G = None
+        if st.lp > 0 and unknown.any():
+            from objcam.solvers.joint import albedo_smoothness_operator
+
+            G = albedo_smoothness_operator(tr.pixel_index[rows], tr.image_shape)
+        return cls(tr=tr, pix=tr.pixel_index[rows], Y=Y, unknown=unknown, rho_known=rho_known, rho0=rho0, Ap=Ap,
+                   DtD=(D.T @ D).tocsr(), ls=st.ls * s_data, lrr=st.lr_ridge * s_data, lp=st.lp, G=G,
+                   t_data=float(np.sum(Y * Y) / (rows.size * 3)))
+
+    def objective(self, X: np.ndarray, rho: np.ndarray) -> float:
+        """F at envmaps X (L, N, 3) and albedo rho (M, 3) (held at rho_known where the albedo is known)."""
+        rho = np.where(self.unknown[:, None], rho, self.rho_known)
+        v = 0.0
+        for l in range(self.Y.shape[0]):
+            r = rho * (self.Ap @ X[l]) - self.Y[l]
+            v += float(np.sum(r * r) + self.ls * np.sum(X[l] * (self.DtD @ X[l])) + self.lrr * np.sum(X[l] * X[l]))
+        if self.G is not None:
+            gr = self.G @ rho
+            v += self.lp * self.t_data * float(np.sum(gr * gr))
+        return v
+
+
 def _bitmap_map(h: int, f: int) -> tuple[np.ndarray, np.ndarray]:
     """The linear map env (H, 2H, C) -> Mitsuba's envmap ``data`` (f H + 1, 2 f H + 2, C): row weights Wrow
     (f H + 1, H) and the texel column of every data column (2 f H + 2,)."""
@@ -109,37 +172,16 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
 
     from objcam.envmap import EnvGrid
     from objcam.scene import build_mitsuba_scene, use_mitsuba
-    from objcam.solvers.regularization import difference_operator
 
     mi = use_mitsuba()
     if not mi.variant().endswith("_ad_rgb"):
         raise StageError(f"method=adam needs Mitsuba's llvm_ad_rgb variant (have {mi.variant()})",
                          fix="run `make setup` (installs libllvm19)")
-    tr = data[names[0]][0]
-    grid = EnvGrid(tr.env_height)
-    f = tr.downsample
+    pb = AdamProblem.build(data, names, st)
+    tr, grid, f = pb.tr, EnvGrid(pb.tr.env_height), pb.tr.downsample
     hp, wp = tr.image_shape
-    use = np.logical_and.reduce([data[t][4] for t in names])
-    rows = np.flatnonzero(use)
-    pix = tr.pixel_index[rows]
-    Y = np.stack([data[t][3][rows] for t in names])  # (L, M, 3)
-    L, m = Y.shape[0], rows.size
-    unknown = tr.unknown_albedo[rows]
-    rho_known = np.clip(tr.albedo[rows].astype(np.float64), 1e-3, 1.0)
-    Ap = tr.rho_free()[:, rows]
-    Ap = (Ap[0] if Ap.shape[0] == 1 else Ap.mean(axis=0)).astype(np.float64)  # (M, N) for init and prediction
-    rho0 = np.where(unknown[:, None], 0.5, rho_known)
-    # relative weights as the exact solve's: to mean(diag(A^T A)), A = diag(rho0) A'
-    s_data = float(np.mean((rho0**2).mean(axis=1) @ (Ap * Ap)))
-    D = difference_operator(grid, tr.texel_index)
-    DtD = (D.T @ D).tocsr()
-    ls, lrr = st.ls * s_data, st.lr_ridge * s_data
-    t_data = float(np.sum(Y * Y) / (m * 3))
-    G = None
-    if st.lp > 0 and unknown.any():
-        from objcam.solvers.joint import albedo_smoothness_operator
-
-        G = albedo_smoothness_operator(pix, tr.image_shape)
+    pix, Y, L, m, unknown, rho_known, Ap = pb.pix, pb.Y, pb.Y.shape[0], pb.pix.size, pb.unknown, pb.rho_known, pb.Ap
+    rho0, DtD, ls, lrr, G, t_data = pb.rho0, pb.DtD, pb.ls, pb.lrr, pb.G, pb.t_data
     wrow, cols = _bitmap_map(grid.height, st.upsample)
 
     desc = scene.description
@@ -165,18 +207,8 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
     hist_exact: list[tuple[int, float]] = []
 
     def exact_objective() -> float:
-        """The objective at the current (x, rho) with the transport matrix instead of a render: noise-free (the
-        rendered loss of a few-spp image carries the render's Monte Carlo variance, which hides convergence)."""
-        xe = np.exp(theta)
-        re = np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known)
-        v = 0.0
-        for l in range(L):
-            r = re * (Ap @ xe[l]) - Y[l]
-            v += float(np.sum(r * r) + ls * np.sum(xe[l] * (DtD @ xe[l])) + lrr * np.sum(xe[l] * xe[l]))
-        if G is not None:
-            gr = G @ re
-            v += st.lp * t_data * float(np.sum(gr * gr))
-        return v
+        # noise-free, with the transport matrix instead of a render (see AdamProblem.objective)
+        return pb.objective(np.exp(theta), np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known))
 
     while it < st.max_iter:
         if time.perf_counter() - t_start > st.seconds:
