@@ -24,14 +24,18 @@ def capture(tmp_path_factory) -> Path:
     return cap
 
 
-def test_loss_decreases(capture):
+def test_objective_decreases_and_the_fit_is_close(capture):
     info = json.loads((capture / "objcam" / "solve" / "t0" / "solve.json").read_text())
-    h = np.array(info["loss_history"])
     assert info["method"] == "adam" and info["stopped"] in ("max_iter", "converged")
-    assert 20 <= h.size <= 30
-    # stochastic (2 spp per step), so compare the ends: measured a fall to 0.70 of the constant-sky start
-    assert np.mean(h[-3:]) < 0.8 * h[0]
-    assert np.mean(h[-5:]) < np.mean(h[:5])
+    assert 20 <= len(info["loss_history"]) <= 30
+    # the rendered loss of a 2-spp image grows with the sun's render noise as the sun forms, so judge the run by
+    # the noise-free objective (with A'), recorded at the start, every 25 iterations and at the end
+    h = info["objective_history_transport"]
+    assert h[0][0] == 0 and h[-1][0] == info["iterations"]
+    assert h[-1][1] < 0.5 * h[0][1]
+    # the prediction rho * A' x fits the photo: measured 0.22 after 30 steps; 0.94 when the render's known albedo
+    # was multiplied in a second time (x fitted to 1 / rho of the truth)
+    assert info["relative_image_residual"] < 0.4
 
 
 def test_result_approaches_the_truth(capture):

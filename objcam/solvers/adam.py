@@ -2,10 +2,13 @@
 
 It exists to be beaten, and to be fair to, so it minimises OUR objective over the same unknowns:
 
-    F = sum_l ||rho * render(x_l) - y_l||^2 + ls s ||D x_l||^2 + lr s ||x_l||^2  (+ lp t ||G rho||^2)
+    F = sum_l ||rho * A' x_l - y_l||^2 + ls s ||D x_l||^2 + lr s ||x_l||^2  (+ lp t ||G rho||^2)
 
 per target l of one camera (pooled pixels at the transport's kept rows that are usable; rho per pixel and channel,
 shared by the camera's targets, estimated where the albedo is unknown and fixed at the known albedo elsewhere;
+the renderer stands in for A' x: its scene holds the known albedos and renders the unknown ones at 1, so the
+rendered model is ``render(x_l)`` where the albedo is known and ``rho * render(x_l)`` where it is estimated -- an
+earlier version multiplied known pixels by their albedo a second time, which fitted x to 1 / rho of the truth;
 ``s`` the data scale mean(diag(A^T A)), A = diag(rho0) A' at the initial albedo, so the relative weights mean what they mean for the exact
 solve). Parameterisation: x = exp(theta) per kept texel and channel (positive, scale-free steps for radiances
 spanning 4 decades), rho = sigmoid(phi) (inside (0, 1)). Initialisation: a constant sky matching the photo's mean
@@ -18,7 +21,8 @@ this linear map. Stochastic gradients (``spp`` per pixel, a new seed each iterat
 the given learning rate; it stops at ``max_iter``, at the time budget ``seconds`` (early stopping) or when the
 objective stops improving: every ``window`` iterations the objective at the current estimate, evaluated with the
 transport matrix (noise-free: the rendered loss of a 4-spp image is dominated by the render's own variance once
-the fit is close, and plateaus there while x still moves) is compared with the best so far; after ``patience`` windows without a relative improvement of ``converge_tol`` the learning rate is
+the fit is close, and plateaus there while x still moves; recorded with the start and the end in
+``objective_history_transport``) is compared with the best so far; after ``patience`` windows without a relative improvement of ``converge_tol`` the learning rate is
 halved (reduce-on-plateau, down to lr / 16; the stochastic gradients of a few-spp render otherwise leave Adam
 rattling at the noise level its step size sets), and when the smallest rate also stalls it stops ("converged"). The
 loss history and the iterations are in the result.
@@ -210,12 +214,14 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
         # noise-free, with the transport matrix instead of a render (see AdamProblem.objective)
         return pb.objective(np.exp(theta), np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known))
 
+    hist_exact.append((0, exact_objective()))  # the start, so the history shows what the run gained
     while it < st.max_iter:
         if time.perf_counter() - t_start > st.seconds:
             stop = "time budget"
             break
         x = np.exp(theta)
         rho = np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known)
+        rho_r = np.where(unknown[:, None], rho, 1.0)  # what multiplies the render
         g_theta = np.zeros_like(theta)
         g_rho = np.zeros_like(rho)
         loss = 0.0
@@ -232,11 +238,13 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
             im = np.asarray(img, dtype=np.float64)[: hp * f, : wp * f]
             pooled = im.reshape(hp, f, wp, f, 3).mean(axis=(1, 3)).reshape(-1, 3)
             s = pooled[pix]
-            r = rho * s - Y[l]
+            # the render holds the known albedos already (the scene is built with them; unknown ones at 1), so
+            # only the estimated albedo multiplies it: the model is rho * A' x in both cases
+            r = rho_r * s - Y[l]
             loss += float(np.sum(r * r))
             g_rho += 2 * r * s
             adj = np.zeros((hp * wp, 3))
-            adj[pix] = 2 * r * rho / (f * f)
+            adj[pix] = 2 * r * rho_r / (f * f)
             adj = np.repeat(np.repeat(adj.reshape(hp, wp, 3), f, axis=0), f, axis=1)
             dr.backward(dr.sum(img * mi.TensorXf(adj.astype(np.float32)), axis=None))
             gb = np.asarray(dr.grad(tensor), dtype=np.float64)  # (f H + 1, 2 f H + 2, 3)
@@ -278,6 +286,8 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
                     stop = "converged"
                     break
     seconds = time.perf_counter() - t_start
+    if hist_exact[-1][0] != it:
+        hist_exact.append((it, exact_objective()))  # and the end
     x = np.exp(theta)
     rho = np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known)
     out = {}
