@@ -250,7 +250,7 @@ def table(cap: Path, label: str, unknown: bool, adam_long: float, auto_rule: str
     adam = ["solve.method=adam", f"solve.ls={ls_ours:.6g}", "solve.adam_max_iter=1000000", "solve.adam_lr=0.01"]
     log(f"{label}: Adam at equal time ({eq:.0f} s)")
     res[f"Adam, equal time ({eq:.0f} s)"] = run_row(cap, adam + [f"solve.adam_seconds={eq:.1f}"],
-                                                   key=f"{cap.name} | adam equal time of ours", score=score)
+                                                   key=f"{cap.name} | adam equal time of ours")
     log(f"{label}: Adam to convergence (cap {adam_long:.0f} s)")
     # "to convergence", patiently: 16 spp per render (less gradient noise), 8 windows of 25 iterations without a
     # 1e-5 improvement before each halving of the rate (the stage's defaults, 4 spp, 2 windows, 1e-3, stopped it

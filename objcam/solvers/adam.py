@@ -212,7 +212,7 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
 
     def exact_objective() -> float:
         # noise-free, with the transport matrix instead of a render (see AdamProblem.objective)
-        return pb.objective(np.exp(theta), np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known))
+        return pb.objective(np.exp(theta), 1.0 / (1.0 + np.exp(-phi)))  # known pixels are held by objective()
 
     hist_exact.append((0, exact_objective()))  # the start, so the history shows what the run gained
     while it < st.max_iter:
