@@ -406,6 +406,18 @@ def test_gram_free_x_steps_reach_the_same_minimum(sharp_scene):
     assert p.objective.sum() == pytest.approx(g.objective.sum(), rel=1e-4)
 
 
+def test_without_the_polish_the_result_is_the_last_sweeps(sharp_scene):
+    """polish=False (a solve that only provides a start) skips the final exact float64 x-step: same sweeps, same
+    albedo, x from the last sweep's float32 Gram matrices; with it x is exact for the albedo."""
+    grid, keep, blocks, _, _ = sharp_scene
+    p = solve_joint(blocks, grid, keep, ls=1e-2, tol=1e-4, prior="edges")
+    q = solve_joint(blocks, grid, keep, ls=1e-2, tol=1e-4, prior="edges", polish=False)
+    assert q.iterations == p.iterations and len(q.step_history) == len(p.step_history) - 1
+    np.testing.assert_array_equal(q.rho[0], p.rho[0])
+    assert np.all(p.kkt_x < 1e-8) and q.objective.sum() >= p.objective.sum() * (1 - 1e-12)
+    assert q.objective.sum() == pytest.approx(p.objective.sum(), rel=1e-5)
+
+
 @pytest.mark.parametrize("lp", [0.0, 1e-3])
 def test_fixed_pixels_hold_their_albedo_and_pin_the_scale(scene, lp):
     """Pixels of known albedo (here every 7th, at the truth) stay at it, the alternation stays monotone and

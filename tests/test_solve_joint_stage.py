@@ -230,6 +230,10 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
                  "--set", "transport.env_height=8"]) == 0
     info = json.loads((work / "solve" / "cam0_rot0" / "solve.json").read_text())
     assert len(info["bounce_refits"]) == 1 and info["bounce_refits"][0]["cells_updated"] > 0
+    # the solve before the refit only provides its albedo: loose, quadratic prior; the final one is the edge prior's
+    first = info["bounce_refits"][0]["first_solve"]
+    assert first["prior"] == "smooth" and first["tol"] == 3e-2 and info["prior"] == "edges"
+    assert info["converged"] and info["kkt_residual_max"] < 1e-8
     assert "support light redone 1x" in json.loads((work / "solve" / "stage.json").read_text())["summary"]
     tr = load_transport(work / "transport", "cam0_rot0")
     assert tr.bounce_parts() is not None

@@ -976,6 +976,7 @@ def solve_joint(
     rho_init: Sequence[np.ndarray] | None = None,
     xsolver: str = "gram",
     cg_refresh: int = 12,
+    polish: bool = True,
 ) -> JointResult:
     """Jointly recover the albedo of every camera and the L envmaps (per colour channel); see the module docstring.
 
@@ -1011,6 +1012,9 @@ def solve_joint(
         x-step is polished by PCG against the exact float64 operator (:mod:`objcam.solvers.jointqp`) with the last
         sweep's float32 Gram matrices as the preconditioner, so the returned x is exact (KKT ~ qp_tol) for the
         returned rho without forming float64 Gram matrices. The paper's method always forms them.
+    polish: do that final exact x-step (default). ``False`` skips it for a solve whose result is only a starting
+        point (the solve stage's first solve before a bounce refit): x is then the last sweep's x-step on float32
+        Gram matrices (``kkt_x`` says how exact).
 
     Raises :class:`NoValidPixelsError` (a ValueError) when no camera has a valid pixel. Runs with one BLAS thread.
     """
@@ -1457,7 +1461,7 @@ def solve_joint(
         converged = (not diverged) and not active.any()
         if diverged:
             _, X, rho, S, obj_t, kkt_x, _ = best
-        elif exact and (fast_gram or use_pcg or J.huber_on):
+        elif exact and polish and (fast_gram or use_pcg or J.huber_on):
             # final x-step (for edges: at the final tangent point), polished against the exact float64 operator with
             # the last sweep's float32 Gram matrices (formed at this albedo) as the preconditioner: x exactly optimal
             # (KKT ~ qp_tol) for the final rho and the quadratic prior in use

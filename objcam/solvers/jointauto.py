@@ -37,7 +37,8 @@ class JointSetup:
     lr, lp: relative ridge and albedo weights (objcam.solvers.joint conventions). ls0: ls of the provisional
     solve. method: "exact" or "paper" (alpha: its envmap damping). prior: "edges" (Huber; edge_eps its threshold,
     edge_steps its majorise-minimise x-steps per sweep) or "smooth" (quadratic); the paper's method is always
-    smooth. tol, max_iter: the final solve's stopping rule.
+    smooth. tol, max_iter: the final solve's stopping rule. polish: end on the exact float64 x-step
+    (:func:`objcam.solvers.solve_joint`; off for a solve that only provides a starting point).
     """
 
     method: str = "exact"
@@ -52,6 +53,7 @@ class JointSetup:
     tol: float = 1e-6
     max_iter: int = 100
     alpha: float = 0.5
+    polish: bool = True
 
 
 def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel_index: np.ndarray,
@@ -64,7 +66,7 @@ def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel
     Returns the final :class:`JointResult` and a dict on the automatic choice (None when ls was given).
     """
     kw: dict[str, Any] = dict(lr=setup.lr, lp=setup.lp, method=setup.method, max_iter=setup.max_iter,
-                              prior=setup.prior if setup.method == "exact" else "smooth")
+                              prior=setup.prior if setup.method == "exact" else "smooth", polish=setup.polish)
     if setup.method == "paper":
         kw["alpha"] = setup.alpha
     else:
