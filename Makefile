@@ -42,7 +42,7 @@ test: $(STAMP)
 # benchmarks, each writing its block of bench/results.md (renders are cached under bench/out/):
 #   core      transport models x solvers, speed against error on 4 HDRIs (issue 2; ~40 min the first time)
 #   analysis  leverage and uncertainty timing and accuracy (issue 7; 15 s)
-#   joint     the joint-solve ablation table, Adam included (issue 6; ~10-15 min, Adam to convergence most of it)
+#   joint     the joint-solve ablation table, Adam included (issue 6; ~1 h, Adam run to 21x our time most of it)
 #   probe     chrome-ball unwrap against the true envmap (issue 5; ~5 min)
 #   geometry  plane, known-shape registration, reconstruction, texture (issue 4; ~20 min)
 #   e2e       objcam run from raw DNGs against its known-geometry twin (issues 3, 4; ~1 h the first time)

@@ -10,14 +10,15 @@ Rows: plain least squares (x >= 0, no regularisation), + L2, + L2 + smoothness (
 + automatic regularisation with the edge-preserving prior (objcam's default), the paper's damped method, the exact
 alternation on the very objective Adam minimises (quadratic prior at the default row's weights, every usable pixel,
 no bounce refit), Adam through Mitsuba at equal wall time (A + solve of the default row), Adam to convergence (its
-own stopping rule, capped by --adam-long-seconds). Adam's rows are scored on its own objective
-(objcam.solvers.adam.AdamProblem) against that exact optimum: how far from the solution its plateau is. Columns: envmap relative RMSE and SSIM (after the best-fit scale per channel when
+own plateau rule's time recorded, then run on for 21x our time, or --adam-long-seconds). Adam's rows are scored on
+its own objective (objcam.solvers.adam.AdamProblem) against that exact optimum: how far from the solution its
+plateau is, and whether and when it comes within 1% of it. Columns: envmap relative RMSE and SSIM (after the best-fit scale per channel when
 the albedo is unknown), albedo relative RMSE and SSIM, time (A + solve) and the load it ran under.
 
 Part (c): per bundled HDRI (objcam/assets/envmaps, known albedo, same bench targets), the relative RMSE of the
 automatic choice against the best hand-tuned ls on a grid, for every rule (GCV, discrepancy, L-curve).
 
-    python -m bench.ablation [--parts abc] [--quick] [--adam-long-seconds 1800] [--write]
+    python -m bench.ablation [--parts abc] [--quick] [--adam-long-seconds S] [--write]
 
 Every finished row is cached in bench/out/ablation/rows.json (keyed by scene and settings), so an interrupted run
 resumes. Prints markdown; ``--write`` replaces the "## Joint solve ablation (issue 6)" section of bench/results.md.
@@ -39,6 +40,9 @@ HDRIS = ("forest", "courtyard", "city", "sunrise", "sunset")
 TRANSPORT = ["transport.model=auto"]
 #: the ls grid of the hand-tuned search (relative weights, as solve.ls)
 LS_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3)
+#: Adam's long run lasts at least this many times our time (A included): the issue asks whether its convergence
+#: takes >= 20x ours, so it is given 21x to show it (or to converge)
+LONG_FACTOR = 21.0
 
 
 def log(msg: str) -> None:
@@ -203,6 +207,9 @@ def run_row(cap: Path, sets: list[str], key: str | None = None, score: tuple[flo
                                                "ls_relative", "lr_relative", "ls_source", "auto_reg", "prior",
                                                "objective_monotone", "solver", "diverged", "kkt_residual_max")},
            "objective_history": first.get("objective_history") or first.get("loss_history")}
+    if first.get("method") == "adam":  # the noise-free objective on its way, with its times, and the plateau
+        row["adam"] = {k: first.get(k) for k in ("objective_history_transport", "objective_history_seconds",
+                                                 "plateau_seconds", "plateau_iteration")}
     if score is not None:
         row["adam_objective"], row["adam_objective_best"] = adam_objective(cap, *score)
     cache = _cache()
@@ -218,7 +225,7 @@ def _f3(v) -> str:
     return "" if v is None else f"{v:.3f}"
 
 
-def table(cap: Path, label: str, unknown: bool, adam_long: float, auto_rule: str) -> tuple[list[str], dict]:
+def table(cap: Path, label: str, unknown: bool, adam_long: float | None, auto_rule: str) -> tuple[list[str], dict]:
     # without a prior the alternation crawls (hundreds of sweeps): capped at 15 sweeps, as said in the row
     cap_it = ["solve.max_iter=15"] if unknown else []
     rows = [("plain least squares (x >= 0)" + (", 15 sweeps" if unknown else ""),
@@ -251,13 +258,19 @@ def table(cap: Path, label: str, unknown: bool, adam_long: float, auto_rule: str
     log(f"{label}: Adam at equal time ({eq:.0f} s)")
     res[f"Adam, equal time ({eq:.0f} s)"] = run_row(cap, adam + [f"solve.adam_seconds={eq:.1f}"],
                                                    key=f"{cap.name} | adam equal time of ours")
-    log(f"{label}: Adam to convergence (cap {adam_long:.0f} s)")
     # "to convergence", patiently: 16 spp per render (less gradient noise), 8 windows of 25 iterations without a
     # 1e-5 improvement before each halving of the rate (the stage's defaults, 4 spp, 2 windows, 1e-3, stopped it
-    # at its noise plateau within 10-30 s here, at the same estimate as the equal-time run)
-    res["Adam to convergence"] = run_row(cap, adam + [f"solve.adam_seconds={adam_long}", "solve.adam_converge_tol=1e-5",
-                                                      "solve.adam_patience=8", "solve.adam_spp=16"],
-                                         key=f"{cap.name} | adam long {adam_long:g} patient", score=score)
+    # at its noise plateau within 10-30 s here, at the same estimate as the equal-time run). Where its plateau rule
+    # fires ("converged") the time is recorded and it goes on at the smallest rate for LONG_FACTOR x our time (or
+    # adam_long seconds): whether, and when, it comes within 1% of the optimum of its objective is what says how
+    # long Adam takes to converge
+    budget = adam_long if adam_long is not None else LONG_FACTOR * eq
+    log(f"{label}: Adam to convergence (plateau recorded, run on to {budget:.0f} s)")
+    res["Adam to convergence"] = run_row(cap, adam + [f"solve.adam_seconds={budget:.1f}",
+                                                      "solve.adam_converge_tol=1e-5", "solve.adam_patience=8",
+                                                      "solve.adam_spp=16", "solve.adam_stop_on_plateau=false"],
+                                         key=f"{cap.name} | adam long {LONG_FACTOR:g}x ours, plateau recorded",
+                                         score=score)
     out = [f"| {label} | envmap rel. RMSE | envmap SSIM | albedo rel. RMSE | albedo SSIM | time: A + solve (s) "
            "| load | notes |", "|---|---:|---:|---:|---:|---:|---:|---|"]
     for name, r in res.items():
@@ -282,25 +295,41 @@ def table(cap: Path, label: str, unknown: bool, adam_long: float, auto_rule: str
     beats = all((ours[k] - eqr[k]) * sgn > 0 for k, sgn in keys if ours[k] is not None and eqr[k] is not None)
     long_r = res["Adam to convergence"]
     ratio = long_r["solve_s"] / eq
-    converged = long_r["solve"].get("stopped") == "converged"
     opt = res[same]
     f_opt = opt.get("adam_objective")
     f_end, f_best = long_r.get("adam_objective"), long_r.get("adam_objective_best")
     gap = f_end / f_opt if f_opt and f_end is not None else None
     gap_best = f_best / f_opt if f_opt and f_best is not None else None
-    checks = {"ours_beats_adam_equal_time_on_every_metric": beats, "adam_long_over_ours_time": round(ratio, 1),
-              "adam_long_converged": converged, "ours_time_incl_A": round(eq, 1),
-              "adam_objective_over_optimum_at_stop": None if gap is None else round(gap, 2),
+    ad = long_r.get("adam") or {}
+    t_plateau = ad.get("plateau_seconds")
+    # the first time Adam's objective came within 1% of the optimum (None: not in the whole run)
+    t_reach = next((t for (_, v), t in zip(ad.get("objective_history_transport") or [],
+                                           ad.get("objective_history_seconds") or []) if f_opt and v <= 1.01 * f_opt),
+                   None)
+    # Adam to convergence over ours: the time it took to come within 1% of the optimum, or at least its whole run
+    conv_ratio = (t_reach if t_reach is not None else long_r["solve_s"]) / eq
+    checks = {"ours_beats_adam_equal_time_on_every_metric": beats, "ours_time_incl_A": round(eq, 1),
+              "adam_plateau_seconds": t_plateau,
+              "adam_plateau_over_ours_time": None if t_plateau is None else round(t_plateau / eq, 1),
+              "adam_run_seconds": long_r["solve_s"], "adam_reached_optimum_within_1pct_seconds": t_reach,
+              "adam_convergence_over_ours_time": round(conv_ratio, 1),
+              "adam_convergence_over_ours_time_is_lower_bound": t_reach is None,
+              "adam_objective_over_optimum_at_end": None if gap is None else round(gap, 2),
               "adam_objective_over_optimum_best": None if gap_best is None else round(gap_best, 2)}
+    plateau_txt = ("its plateau rule never fired" if t_plateau is None else
+                   f"its plateau rule ('converged') fired after {t_plateau:.0f} s = {t_plateau / eq:.1f}x ours")
+    if gap is None:
+        conv_txt = "."
+    elif t_reach is None:
+        conv_txt = (f"; run on to {long_r['solve_s']:.0f} s = {ratio:.1f}x ours, the objective it minimises was "
+                    f"then **{gap:.3g}x** the optimum the exact alternation reaches on the same objective in "
+                    f"{opt['a_s']:.0f} + {opt['solve_s']:.0f} s (its lowest on the way: {gap_best:.3g}x): it never "
+                    f"came within 1% of it, so Adam to convergence takes **> {conv_ratio:.1f}x** our time.")
+    else:
+        conv_txt = (f"; it came within 1% of the optimum of its objective after {t_reach:.0f} s: Adam to "
+                    f"convergence takes **{conv_ratio:.1f}x** our time.")
     out += ["", f"Checks ({label}): ours beats Adam at equal time on every metric: **{'yes' if beats else 'NO'}**; "
-            f"Adam {'stopped by its plateau rule' if converged else 'stopped at its time cap'} after "
-            f"{long_r['solve_s']:.0f} s = **{ratio:.1f}x** ours ({eq:.0f} s incl. A)"
-            + ("." if gap is None else
-               f"; there the objective it minimises was **{gap:.3g}x** the optimum the exact alternation reaches "
-               f"on the same objective in {opt['a_s']:.0f} + {opt['solve_s']:.0f} s (its lowest on the way: "
-               f"{gap_best:.3g}x): "
-               + ("Adam does not converge to the solution." if gap_best is not None and gap_best > 1.01 else
-                  "Adam reached the optimum."))]
+            f"ours takes {eq:.0f} s incl. A; Adam: {plateau_txt}" + conv_txt]
     return out, checks
 
 
@@ -346,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
     global ROWS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="64 px, fewer spp, short Adam (a smoke run)")
-    ap.add_argument("--adam-long-seconds", type=float, default=None)
+    ap.add_argument("--adam-long-seconds", type=float, default=None,
+                    help="Adam's long run (default: 21x our time incl. A; --quick: 120 s)")
     ap.add_argument("--rules", default="discrepancy,gcv,lcurve", help="auto_reg rules shown as extra rows")
     ap.add_argument("--write", action="store_true", help="replace the ablation section of bench/results.md")
     ap.add_argument("--parts", default="abc", help="a: unknown albedo table, b: known albedo, c: rules per HDRI")
@@ -354,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     ROWS = a.rows or ROWS
     os.environ.setdefault("OBJCAM_QUIET", "1")
-    adam_long = a.adam_long_seconds or (120.0 if a.quick else 1800.0)
+    adam_long = a.adam_long_seconds or (120.0 if a.quick else None)
     t0 = time.perf_counter()
     md: list[str] = []
     checks: dict = {}

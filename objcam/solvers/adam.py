@@ -54,6 +54,9 @@ class AdamSettings:
     window: int = 25
     patience: int = 2
     seed: int = 0
+    #: False: where the plateau rule would stop ("converged"), record the time and go on at the smallest rate
+    #: until the time budget or max_iter (to see whether Adam, given more time, ever reaches the solution)
+    stop_on_plateau: bool = True
 
 
 @dataclass
@@ -215,6 +218,8 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
         return pb.objective(np.exp(theta), 1.0 / (1.0 + np.exp(-phi)))  # known pixels are held by objective()
 
     hist_exact.append((0, exact_objective()))  # the start, so the history shows what the run gained
+    hist_seconds = [0.0]  # the wall time of each entry of hist_exact
+    plateau: tuple[int, float] | None = None  # (iteration, seconds) where the plateau rule fired
     while it < st.max_iter:
         if time.perf_counter() - t_start > st.seconds:
             stop = "time budget"
@@ -274,6 +279,7 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
         if it % st.window == 0:
             cur = exact_objective()
             hist_exact.append((it, cur))
+            hist_seconds.append(time.perf_counter() - t_start)
             if cur < best_win * (1 - st.converge_tol):
                 best_win, stall = cur, 0
             else:
@@ -282,12 +288,16 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
                 if lr_now > st.lr / 16 * 1.0001:
                     lr_now, stall = 0.5 * lr_now, 0
                     lr_drops.append(it)
-                else:
-                    stop = "converged"
-                    break
+                elif plateau is None:
+                    plateau = (it, time.perf_counter() - t_start)
+                    if st.stop_on_plateau:
+                        stop = "converged"
+                        break
+                    stall = 0  # told to go on: at the smallest rate until the budget
     seconds = time.perf_counter() - t_start
     if hist_exact[-1][0] != it:
         hist_exact.append((it, exact_objective()))  # and the end
+        hist_seconds.append(seconds)
     x = np.exp(theta)
     rho = np.where(unknown[:, None], 1.0 / (1.0 + np.exp(-phi)), rho_known)
     out = {}
@@ -309,7 +319,11 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
                 "scale_ambiguous": bool(unknown.any()), "texels": int(n), "pixels_used": int(m),
                 "solve_seconds": round(seconds, 3), "iterations": it, "stopped": stop, "lr_halved_at": lr_drops,
                 "loss_history": [float(v) for v in hist],
-                "objective_history_transport": [[int(i), float(v)] for i, v in hist_exact], "kkt_residual_max": float("nan"),
+                "objective_history_transport": [[int(i), float(v)] for i, v in hist_exact],
+                "objective_history_seconds": [round(float(v), 3) for v in hist_seconds],
+                "plateau_iteration": None if plateau is None else plateau[0],
+                "plateau_seconds": None if plateau is None else round(plateau[1], 3),
+                "kkt_residual_max": float("nan"),
                 "relative_image_residual": rel, "lr": st.lr, "spp": st.spp, "max_depth": st.max_depth,
                 "ls_relative": st.ls, "lr_relative": st.lr_ridge, "lp_relative": st.lp}
         out[name] = AdamTargetResult(env.reshape(grid.height, grid.width, 3), pred.reshape(hp, wp, 3), alb,

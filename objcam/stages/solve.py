@@ -153,6 +153,9 @@ class Params(BaseModel):
                                      "(the benchmark's run to convergence uses 1e-5)")
     adam_patience: int = Field(2, ge=1, description="method=adam: windows of 25 iterations without that improvement "
                                "before the learning rate is halved (down to 1/16), then before it stops")
+    adam_stop_on_plateau: bool = Field(True, description="method=adam: stop where the plateau rule fires "
+                                       "('converged'); false records that time (plateau_seconds) and goes on at "
+                                       "the smallest rate until adam_seconds (the benchmark's long run)")
 
 
 # --------------------------------------------------------------------------------------------------- helpers
@@ -663,7 +666,8 @@ def _solve_adam(scene, data, params: Params, out) -> dict[str, dict]:
     settings = AdamSettings(lr=params.adam_lr, seconds=params.adam_seconds, max_iter=params.adam_max_iter,
                             spp=params.adam_spp, ls=params.ls if params.ls is not None else KNOWN_LS_REL,
                             lr_ridge=params.lr, lp=0.0 if params.lp is None else params.lp,
-                            converge_tol=params.adam_converge_tol, patience=params.adam_patience)
+                            converge_tol=params.adam_converge_tol, patience=params.adam_patience,
+                            stop_on_plateau=params.adam_stop_on_plateau)
     per_target: dict[str, dict] = {}
     for name, r in solve_adam_targets(scene, data, settings).items():
         tr, pooled, pooled_ok = data[name][0], data[name][1], data[name][2]
