@@ -393,24 +393,42 @@ def main(argv: list[str] | None = None) -> int:
         log("(a) unknown albedo, 3 illuminations")
         cap = unknown_scene(a.quick)
         out, checks["a"] = table(cap, "(a) dots, unknown albedo, 3 rotations", True, adam_long, rules)
-        md += out + [""]
+        md += _part("a", out) + [""]
     if "b" in a.parts:
         log("(b) known albedo, forest")
         out, checks["b"] = table(forest_scene(a.quick), "(b) known albedo, forest", False, adam_long, rules)
-        md += out + [""]
+        md += _part("b", out) + [""]
     if "c" in a.parts:
         log("(c) automatic regularisation per HDRI")
         out, checks["c"] = autoreg_check(known_scene(HDRIS, a.quick), HDRIS, tuple(rules))
-        md += out
+        md += _part("c", out)
     text = "\n".join(md)
     print(text)
     print(json.dumps(checks, indent=1))
     log(f"ablation done in {time.perf_counter() - t0:.0f} s")
     if a.write:
-        from bench.sections import write_section
+        from bench.sections import RESULTS, write_section
 
-        write_section("joint", text, "Joint solve ablation (issue 6)")
+        write_section("joint", _splice(RESULTS.read_text() if RESULTS.is_file() else "", md, a.parts),
+                      "Joint solve ablation (issue 6)")
     return 0
+
+
+def _part(name: str, lines: list[str]) -> list[str]:
+    """One part's markdown between its markers (so a run of some parts replaces only theirs)."""
+    return [f"<!-- joint:{name} -->", *lines, f"<!-- /joint:{name} -->"]
+
+
+def _splice(results: str, md: list[str], parts: str) -> str:
+    """The joint block with the parts run now (``md``) and the other parts as they stand in ``results``."""
+    import re
+
+    new = "\n".join(md)
+    if set("abc") <= set(parts):
+        return new
+    old = {m.group(1): m.group(0) for m in re.finditer(r"<!-- joint:(\w) -->.*?<!-- /joint:\1 -->", results, re.S)}
+    fresh = {m.group(1): m.group(0) for m in re.finditer(r"<!-- joint:(\w) -->.*?<!-- /joint:\1 -->", new, re.S)}
+    return "\n\n".join(fresh.get(k) or old[k] for k in "abc" if k in fresh or k in old)
 
 
 if __name__ == "__main__":
