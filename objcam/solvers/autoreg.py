@@ -23,13 +23,6 @@ chosen weights). Y may hold several columns (channels, targets); the criteria po
   Measured against the best hand-tuned ls per bundled HDRI in bench/results.md ("Joint solve ablation").
 - ``"lcurve"`` -- the corner of the L-curve (Hansen): the point of maximum curvature of
   ``(log ||A x - y||, log ||D x||)`` as a function of log ls.
-- ``"evidence"`` -- type-II maximum likelihood (MacKay 1992; empirical Bayes): the ls that makes the data most
-  probable under the Gaussian model ``y = A x + e``, ``e ~ N(0, s2 I)``, ``x ~ N(0, s2 P^-1)``,
-  ``P = ls D^T D + lr I``, with the noise level s2 of each column profiled out (``s2 = E / M``): maximise
-  ``-(M/2) sum_k log E_k(ls) - (k/2) (log det(K + P) - log det P)``, ``E_k = ||A x - y_k||^2 + x^T P x`` at the
-  ridge solution. Needs no noise level: model error counts as noise, so it does not fall to the smallest ls as
-  the residual rules do. ``log det(K + P) = log det(K + lr I) + sum_j log(1 + ls nu_j)`` from the same
-  decomposition and ``log det P = sum_j log(lr + ls mu_j)`` from the eigenvalues mu of D^T D (once).
 
 Fast evaluation (one O(N^3) decomposition per lr, then O(N^2 k) per ls). With ``K = A^T A`` and ``L = D^T D``,
 solve the symmetric-definite generalised eigenproblem ``L v = nu (K + lr I) v`` (scipy.linalg.eigh), normalised
@@ -65,7 +58,7 @@ from objcam.threads import single_blas_thread
 #: Default relative ls grid: 1e-7 .. 1e2, 10 points per decade.
 DEFAULT_LS_GRID = np.logspace(-7, 2, 91)
 
-RULES = ("gcv", "discrepancy", "lcurve", "evidence")
+RULES = ("gcv", "discrepancy", "lcurve")
 
 
 @dataclass
@@ -211,10 +204,6 @@ def choose_weights(
         raise ValueError("A is all zero: nothing constrains the envmap")
     D = difference_operator(grid, texel_index)
     Lmat = (D.T @ D).toarray()
-    mu = None
-    if rule == "evidence":
-        with single_blas_thread():
-            mu = np.maximum(sla.eigvalsh(Lmat, check_finite=False), 0.0)  # (N,) eigenvalues of D^T D
     t_form = time.perf_counter() - t0
     k = Y2.shape[1]
     log_grid = np.log(ls_grid)
@@ -250,27 +239,6 @@ def choose_weights(
                 info["notes"].append(f"GCV minimum at the edge of the ls grid (lr_rel={lr_rel:g})")
             if best is None or v_best < best[0]:
                 best = (v_best, float(np.exp(t_best)), float(lr_rel), cv)
-        elif rule == "evidence":
-            lr_abs = float(lr_rel) * s
-
-            def log_ev(t: float) -> float:
-                ls_abs = np.exp(t) * s
-                e = sysm.evaluate(ls_abs)
-                energy = np.maximum(e["residual"] + ls_abs * e["dx2"] + lr_abs * e["x2"], 1e-300)
-                logdet = np.sum(np.log1p(ls_abs * sysm.nu)) - np.sum(np.log(lr_abs + ls_abs * mu))
-                return float(-0.5 * m * np.sum(np.log(energy)) - 0.5 * k * logdet)
-
-            ev = np.array([log_ev(t) for t in log_grid])
-            j = int(np.argmax(ev))
-            t_best, v_best = log_grid[j], ev[j]
-            if refine and 0 < j < ls_grid.size - 1:
-                t, v = golden_section(lambda t: -log_ev(t), log_grid[j - 1], log_grid[j + 1], tol=1e-4)
-                if -v > v_best:
-                    t_best, v_best = t, -v
-            if j in (0, ls_grid.size - 1):
-                info["notes"].append("evidence maximum at the edge of the ls grid")
-            info["log_evidence"] = ev
-            best = (0.0, float(np.exp(t_best)), float(lr_rel), cv)
         elif rule == "discrepancy":
             noise = tau * m * sigma**2 * k * shot
             target = noise
@@ -325,8 +293,7 @@ def choose_weights(
             if j in (1, tt.size - 2):
                 info["notes"].append("L-curve corner at the edge of the ls grid")
     _, ls_rel, lr_rel, cv = best
-    crit = {"gcv": cv["gcv"], "discrepancy": cv["residual"], "lcurve": cv["dx2"]}.get(rule)
-    info.update(criterion=info.get("log_evidence") if rule == "evidence" else crit,
+    info.update(criterion=cv["gcv"] if rule == "gcv" else (cv["residual"] if rule == "discrepancy" else cv["dx2"]),
                 gcv=cv["gcv"], residual=cv["residual"], trace=cv["trace"], dx2=cv["dx2"],
                 per_lr=per_lr, decomposition_seconds=decomp_s, seconds=time.perf_counter() - t0,
                 ls_abs=ls_rel * s, lr_abs=lr_rel * s)

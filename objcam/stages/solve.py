@@ -126,7 +126,7 @@ class Params(BaseModel):
     lp: float | None = Field(None, ge=0, description="albedo smoothness weight (unknown albedo), relative to the "
                              f"albedo data term; None: 0 with >= 2 illuminations per camera, {LP_ONE_ILLUMINATION} "
                              "with one")
-    auto_reg: Literal["gcv", "discrepancy", "lcurve", "evidence", "off"] = Field(
+    auto_reg: Literal["gcv", "discrepancy", "lcurve", "off"] = Field(
         "off", description="rule choosing ls when ls is None (both albedo cases); off: the measured defaults "
         "(bench/results.md: on path-traced targets every rule picked far too little smoothing)")
     tol: float = Field(JOINT_TOL, gt=0, description="joint solve: stop when the relative objective decrease per "
