@@ -456,7 +456,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone), so
     # it stops early, with the quadratic prior (one factorisation per channel serves every target, no
     # majorise-minimise steps) and without the final float64 x-step. Measured on the dots bench scene: first solve
-    # 25.5 -> 12.9 s, the stage 46 -> 36 s, envmap SSIM 0.597 -> 0.601 (bench/results.md)
+    # 25.5 -> 11.2 s, the stage 46 -> 33 s, envmap SSIM 0.597 -> 0.601 (bench/results.md)
     first = (dataclasses.replace(setup, tol=max(setup.tol, BOUNCE_FIRST_TOL), prior="smooth", polish=False)
              if refit_next else setup)
     res, auto = solve([c["rho0"] for c in cams], first)
