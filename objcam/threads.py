@@ -31,3 +31,30 @@ def blas_threads(n: int | None = None):
 
     with _controller().limit(limits=int(n or os.cpu_count() or 1), user_api="blas"):
         yield
+
+
+def cores() -> int:
+    """The CPU cores this process may run on."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def parallel_map(fn, items, workers: int | None = None) -> list:
+    """``[fn(item) for item in items]`` on a pool of threads, one per core (at most one per item).
+
+    For independent dense-linear-algebra tasks (e.g. the exact QPs of one x-step, each a Cholesky and triangular
+    solves): LAPACK releases the GIL, so with one BLAS thread per task (the caller holds
+    :func:`single_blas_thread`) two tasks use both cores without BLAS's own threading, which is what made
+    single factorisations slower here. Exceptions propagate; the order of the results is that of ``items``."""
+    items = list(items)
+    n = min(len(items), int(workers or cores()))
+    if n <= 1:
+        return [fn(it) for it in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=n) as pool:
+        return list(pool.map(fn, items))

@@ -442,3 +442,25 @@ def test_exact_solve_takes_the_path_each_column_needs():
         assert np.allclose(both.x[:, c], alone.x[:, 0], rtol=1e-9, atol=1e-9 * np.abs(alone.x).max())
     blocks = solve_exact(Q, B, schur=False)
     assert np.allclose(both.x, blocks.x, rtol=1e-9, atol=1e-9 * np.abs(blocks.x).max())
+
+
+def test_parallel_map_keeps_order_and_raises():
+    """objcam.threads.parallel_map: the results in the order of the items (the joint x-step writes them back by
+    position) and a task's exception reaches the caller."""
+    from objcam.threads import parallel_map, single_blas_thread
+
+    rng = np.random.default_rng(0)
+    mats = [rng.standard_normal((60, 40)) for _ in range(5)]
+    with single_blas_thread():
+        got = parallel_map(lambda a: np.linalg.cholesky(a.T @ a + np.eye(40)), mats, workers=2)
+    for a, L in zip(mats, got):
+        np.testing.assert_allclose(L @ L.T, a.T @ a + np.eye(40), rtol=1e-10, atol=1e-10)
+
+    def bad(i):
+        if i == 3:
+            raise ValueError("task 3")
+        return i
+
+    with pytest.raises(ValueError, match="task 3"):
+        parallel_map(bad, range(5), workers=2)
+    assert parallel_map(lambda i: i * i, range(4), workers=1) == [0, 1, 4, 9]

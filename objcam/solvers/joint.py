@@ -144,7 +144,7 @@ from objcam.solvers.jointqp import solve_nnls_pcg
 from objcam.solvers.nnls import kkt_residual, solve_exact
 from objcam.solvers.regularization import DEFAULT_LR_REL, DEFAULT_LS_REL, difference_operator
 from objcam.solvers.search import golden_section
-from objcam.threads import blas_threads, single_blas_thread
+from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
 #: Default lower bound on the albedo (the model's (0, 1] made closed).
 DEFAULT_RHO_MIN = 1e-3
@@ -1119,23 +1119,31 @@ def solve_joint(
         kk = np.zeros((L, C))
         B = J.rhs(rho, chans)
         per_target = J.huber_on
-        for c in chans:
-            G = J.gram(rho, c, gram_cache, fast=fast)
-            groups = [[l] for l in range(L)] if per_target else [list(range(L))]
-            for ls_ in groups:
-                Q = G + J.R_dense(ls_[0])
-                Bc = B[:, ls_, c]
-                if exact:
-                    p0 = X[:, ls_, c] > 0 if warm else None
-                    res = solve_exact(Q, Bc, tol=qp_tol, passive0=p0)
-                    X[:, ls_, c] = res.x
-                    kk[ls_, c] = res.kkt_residual
-                else:
-                    fac, _ = _chol(Q)
-                    Xc = X[:, ls_, c]
-                    Xc = np.maximum(Xc - alpha * cho_solve(fac, Q @ Xc - Bc, check_finite=False), 0.0)
-                    X[:, ls_, c] = Xc
-                    kk[ls_, c] = kkt_residual(Q, Bc, Xc)
+        groups = [[l] for l in range(L)] if per_target else [list(range(L))]
+        # the channels' Gram matrices first (each a large product on every core), then the independent QPs of
+        # the (target group, channel) pairs on a thread per core, each with one BLAS thread
+        grams = {int(c): J.gram(rho, c, gram_cache, fast=fast) for c in chans}
+        for ls_ in groups:
+            J.R_dense(ls_[0])  # built (and cached) here, not by two threads at once
+        X_in = X.copy()
+
+        def one(task):
+            c, ls_ = task
+            Q = grams[c] + J.R_dense(ls_[0])
+            Bc = B[:, ls_, c]
+            if exact:
+                p0 = X_in[:, ls_, c] > 0 if warm else None
+                res = solve_exact(Q, Bc, tol=qp_tol, passive0=p0)
+                return res.x, res.kkt_residual
+            fac, _ = _chol(Q)
+            Xc = X_in[:, ls_, c]
+            Xc = np.maximum(Xc - alpha * cho_solve(fac, Q @ Xc - Bc, check_finite=False), 0.0)
+            return Xc, kkt_residual(Q, Bc, Xc)
+
+        tasks = [(int(c), ls_) for c in chans for ls_ in groups]
+        for (c, ls_), (xc, kc) in zip(tasks, parallel_map(one, tasks)):
+            X[:, ls_, c] = xc
+            kk[ls_, c] = kc
         timers["x"] += time.perf_counter() - t0
         return X, kk
 
