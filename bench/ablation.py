@@ -21,7 +21,8 @@ automatic choice against the best hand-tuned ls on a grid, for every rule (GCV, 
     python -m bench.ablation [--parts abc] [--quick] [--adam-long-seconds S] [--write]
 
 Every finished row is cached in bench/out/ablation/rows.json (keyed by scene and settings), so an interrupted run
-resumes. Prints markdown; ``--write`` replaces the "## Joint solve ablation (issue 6)" section of bench/results.md.
+resumes. Prints markdown; ``--write`` replaces the "## Joint solve ablation (issue 6)" block of bench/results.md,
+or with ``--parts`` only the tables of the parts run (each part sits between its own markers).
 """
 
 from __future__ import annotations
@@ -269,7 +270,7 @@ def table(cap: Path, label: str, unknown: bool, adam_long: float | None, auto_ru
     res["Adam to convergence"] = run_row(cap, adam + [f"solve.adam_seconds={budget:.1f}",
                                                       "solve.adam_converge_tol=1e-5", "solve.adam_patience=8",
                                                       "solve.adam_spp=16", "solve.adam_stop_on_plateau=false"],
-                                         key=f"{cap.name} | adam long {LONG_FACTOR:g}x ours, plateau recorded",
+                                         key=f"{cap.name} | adam long {budget:.0f} s, plateau recorded",
                                          score=score)
     out = [f"| {label} | envmap rel. RMSE | envmap SSIM | albedo rel. RMSE | albedo SSIM | time: A + solve (s) "
            "| load | notes |", "|---|---:|---:|---:|---:|---:|---:|---|"]
