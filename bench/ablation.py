@@ -427,9 +427,12 @@ def _splice(results: str, md: list[str], parts: str) -> str:
     new = "\n".join(md)
     if set("abc") <= set(parts):
         return new
-    old = {m.group(1): m.group(0) for m in re.finditer(r"<!-- joint:(\w) -->.*?<!-- /joint:\1 -->", results, re.S)}
-    fresh = {m.group(1): m.group(0) for m in re.finditer(r"<!-- joint:(\w) -->.*?<!-- /joint:\1 -->", new, re.S)}
-    return "\n\n".join(fresh.get(k) or old[k] for k in "abc" if k in fresh or k in old)
+
+    def by_part(text: str) -> dict[str, str]:
+        return {m.group(1): m.group(0) for m in re.finditer(r"<!-- joint:(\w) -->.*?<!-- /joint:\1 -->", text, re.S)}
+
+    have = {**by_part(results), **by_part(new)}  # the parts run now win
+    return "\n\n".join(have[k] for k in "abc" if k in have)
 
 
 if __name__ == "__main__":

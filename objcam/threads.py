@@ -25,11 +25,9 @@ def single_blas_thread():
 
 @contextmanager
 def blas_threads(n: int | None = None):
-    """Let BLAS use ``n`` threads (default: every core) inside, e.g. for one large matrix product in solver code
-    that otherwise runs under :func:`single_blas_thread`."""
-    import os
-
-    with _controller().limit(limits=int(n or os.cpu_count() or 1), user_api="blas"):
+    """Let BLAS use ``n`` threads (default: every core, :func:`cores`) inside, e.g. for one large matrix product
+    in solver code that otherwise runs under :func:`single_blas_thread`."""
+    with _controller().limit(limits=int(n or cores()), user_api="blas"):
         yield
 
 

@@ -1125,18 +1125,18 @@ def solve_joint(
         grams = {int(c): J.gram(rho, c, gram_cache, fast=fast) for c in chans}
         for ls_ in groups:
             J.R_dense(ls_[0])  # built (and cached) here, not by two threads at once
-        X_in = X.copy()
+        # the tasks read the warm start from X; it is written only after every task has returned
 
         def one(task):
             c, ls_ = task
             Q = grams[c] + J.R_dense(ls_[0])
             Bc = B[:, ls_, c]
             if exact:
-                p0 = X_in[:, ls_, c] > 0 if warm else None
+                p0 = X[:, ls_, c] > 0 if warm else None
                 res = solve_exact(Q, Bc, tol=qp_tol, passive0=p0)
                 return res.x, res.kkt_residual
             fac, _ = _chol(Q)
-            Xc = X_in[:, ls_, c]
+            Xc = X[:, ls_, c]
             Xc = np.maximum(Xc - alpha * cho_solve(fac, Q @ Xc - Bc, check_finite=False), 0.0)
             return Xc, kkt_residual(Q, Bc, Xc)
 
