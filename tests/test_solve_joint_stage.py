@@ -233,6 +233,8 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
     # the solve before the refit only provides its albedo: loose, quadratic prior; the final one is the edge prior's
     first = info["bounce_refits"][0]["first_solve"]
     assert first["prior"] == "smooth" and first["tol"] == 3e-2 and info["prior"] == "edges"
+    # ... on one pixel in 2 x 2 (two illuminations: every pixel's albedo follows from its least squares)
+    assert first["pixel_stride"] == 2 and 0.2 * info["pixels_used"] < first["pixels"] < 0.4 * info["pixels_used"]
     assert info["converged"] and info["kkt_residual_max"] < 1e-8
     assert "support light redone 1x" in json.loads((work / "solve" / "stage.json").read_text())["summary"]
     tr = load_transport(work / "transport", "cam0_rot0")
