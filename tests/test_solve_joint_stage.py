@@ -304,7 +304,7 @@ def test_the_subsampled_first_solve_gives_every_pixel_the_albedo_of_its_least_sq
 
     from objcam.envmap import EnvGrid
     from objcam.solvers.jointauto import JointSetup
-    from objcam.stages.solve import _solve_subsampled
+    from objcam.stages.solve import _solve_subsampled, _subsample
 
     rng = np.random.default_rng(3)
     h, w, n, L = 20, 20, 24, 3
@@ -319,7 +319,7 @@ def test_the_subsampled_first_solve_gives_every_pixel_the_albedo_of_its_least_sq
                rho0=rho0, fixed=fixed)
     grid = EnvGrid(4)
     setup = JointSetup(prior="smooth", ls=1e-9, lr=1e-12, rule="off", tol=1e-12, max_iter=300, polish=False)
-    res, _, fitted = _solve_subsampled([cam], grid, np.arange(n), setup, None, 2)
+    res, _, fitted = _solve_subsampled([cam], _subsample([cam], 2), grid, np.arange(n), setup, None)
     on_grid = ((pix // w) % 2 == 0) & ((pix % w) % 2 == 0)
     assert fitted == int((on_grid | fixed).sum())
     est = res.rho[0]

@@ -473,8 +473,11 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     first = (dataclasses.replace(setup, tol=max(setup.tol, BOUNCE_FIRST_TOL), prior="smooth", polish=False)
              if refit_next else setup)
     stride = params.first_solve_stride if refit_next and L >= 2 and setup.lp == 0 else 1
-    if stride > 1:
-        res, auto, first_pixels = _solve_subsampled(cams, grid, comp.texel_index, first, sigma, stride)
+    subs = _subsample(cams, stride) if stride > 1 else None
+    if subs is not None and sum(s.size for s in subs) < max(64, comp.texel_index.size):
+        stride, subs = 1, None  # too few pixels left to fit: every pixel
+    if subs is not None:
+        res, auto, first_pixels = _solve_subsampled(cams, subs, grid, comp.texel_index, first, sigma)
     else:
         res, auto = solve([c["rho0"] for c in cams], first)
         first_pixels = sum(int(c["rows"].size) for c in cams)
@@ -565,18 +568,25 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     return per_target
 
 
-def _solve_subsampled(cams: list[dict], grid: EnvGrid, texel_index: np.ndarray, setup, sigma, stride: int):
-    """The joint solve on one pixel in ``stride`` x ``stride`` of each camera (every pixel of known albedo kept),
-    then every pixel's albedo at its envmaps: per pixel and channel the 1-D least squares over the L targets,
-    clipped to (0, 1] (the exact rho-step when lp = 0). Returns (result with rho for all rows, auto, pixels fitted)."""
-    from objcam.solvers.joint import DEFAULT_RHO_MIN
-    from objcam.solvers.jointauto import solve_joint_auto
-
+def _subsample(cams: list[dict], stride: int) -> list[np.ndarray]:
+    """Per camera, the positions (into its rows) of one pixel in ``stride`` x ``stride`` of the image grid, and of
+    every pixel of known albedo."""
     subs = []
     for c in cams:
         pix = c["tr"].pixel_index[c["rows"]]
         w = c["tr"].image_shape[1]
         subs.append(np.flatnonzero((((pix // w) % stride == 0) & ((pix % w) % stride == 0)) | c["fixed"]))
+    return subs
+
+
+def _solve_subsampled(cams: list[dict], subs: list[np.ndarray], grid: EnvGrid, texel_index: np.ndarray, setup,
+                      sigma):
+    """The joint solve on the rows ``subs`` of each camera (:func:`_subsample`), then every pixel's albedo at its
+    envmaps: per pixel and channel the 1-D least squares over the L targets, clipped to (0, 1] (the exact rho-step
+    when lp = 0). Returns (result with rho for all rows, auto, pixels fitted)."""
+    from objcam.solvers.joint import DEFAULT_RHO_MIN
+    from objcam.solvers.jointauto import solve_joint_auto
+
     blocks = [(c["A"][s], c["Y"][s], c["tr"].pixel_index[c["rows"]][s], c["tr"].image_shape, c["rho0"][s],
                c["fixed"][s]) for c, s in zip(cams, subs)]
     res, auto = solve_joint_auto(blocks, grid, texel_index, setup, sigma=sigma)
