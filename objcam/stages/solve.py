@@ -593,7 +593,11 @@ def _solve_subsampled(cams: list[dict], subs: list[np.ndarray], grid: EnvGrid, t
     Xf = res.x.reshape(res.x.shape[0], -1)
     rho = []
     for c in cams:
-        S = (c["A"].astype(np.float64) @ Xf).reshape(c["Y"].shape)  # (M, L, C) shading
+        A = c["A"]
+        S = np.empty((A.shape[0], Xf.shape[1]))  # (M, L C) shading, in row blocks (no float64 copy of A')
+        for r0 in range(0, A.shape[0], 8192):
+            S[r0:r0 + 8192] = A[r0:r0 + 8192].astype(np.float64) @ Xf
+        S = S.reshape(c["Y"].shape)
         num = np.einsum("mlc,mlc->mc", S, c["Y"])
         den = np.einsum("mlc,mlc->mc", S, S)
         r = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
