@@ -743,15 +743,7 @@ class _Joint:
 
     def rho_system(self, rho_p, S_p, Y_p, k, c, prox=True):
         """(H, rhs) of camera k, channel c: H = diag(a) + lp G^T G, minimise 0.5 r^T H r - rhs^T r."""
-        s = S_p[:, :, c]
-        a = np.einsum("ml,ml->m", s, s)
-        beta = np.einsum("ml,ml->m", s, Y_p[:, :, c])
-        if prox:
-            amax = float(a.max()) if a.size else 0.0
-            delta = 1e-12 * amax if amax > 0 else 1.0
-            weak = a <= delta
-            a = a + np.where(weak, delta, 0.0)
-            beta = beta + np.where(weak, delta * rho_p[:, c], 0.0)
+        a, beta = _albedo_normal(S_p[:, :, c], Y_p[:, :, c], rho_p[:, c] if prox else None)
         H = sp.diags(a) + self.lp * self.GtG[k] if self.lp > 0 else sp.diags(a)
         return sp.csr_matrix(H), beta
 
@@ -763,6 +755,39 @@ class _Joint:
                     H, beta = self.rho_system(r, s, Y, k, c, prox=False)
                     out[k, c] = box_kkt_residual(H, beta, r[:, c], *self.bounds(k, c))
         return out
+
+
+def _albedo_normal(s: np.ndarray, y: np.ndarray, rho_prev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel the 1-D albedo least squares over the L targets of one channel, ``a r^2 - 2 beta r``: (a, beta),
+    each (M,), from the shading s (M, L) and the photos y (M, L). With ``rho_prev`` a pixel that is (almost) never
+    lit gets a proximal term that holds it at its previous albedo."""
+    a = np.einsum("ml,ml->m", s, s)
+    beta = np.einsum("ml,ml->m", s, y)
+    if rho_prev is not None:
+        amax = float(a.max()) if a.size else 0.0
+        delta = 1e-12 * amax if amax > 0 else 1.0
+        weak = a <= delta
+        a = a + np.where(weak, delta, 0.0)
+        beta = beta + np.where(weak, delta * rho_prev, 0.0)
+    return a, beta
+
+
+def albedo_at(A: np.ndarray, Y: np.ndarray, X: np.ndarray, rho_prev: np.ndarray, fixed: np.ndarray | None = None,
+              rho_min: float = DEFAULT_RHO_MIN) -> np.ndarray:
+    """The exact albedo step without an albedo prior (lp = 0) for one camera at the envmaps X: per pixel and
+    channel ``clip(beta / a, rho_min, 1)`` (:meth:`_Joint.rho_system`'s rule, a never-lit pixel kept at
+    ``rho_prev``), pixels ``fixed`` held at ``rho_prev``.
+
+    A: (M, N) A' (float32 is converted in row blocks); Y: (M, L, C) photos; X: (N, L, C); rho_prev: (M, C).
+    Returns (M, C)."""
+    S = _matmul(A, X.reshape(X.shape[0], -1)).reshape(Y.shape)
+    rho = np.empty(rho_prev.shape)
+    for c in range(Y.shape[2]):
+        a, beta = _albedo_normal(S[:, :, c], Y[:, :, c], rho_prev[:, c])
+        rho[:, c] = np.clip(beta / a, rho_min, 1.0)
+    if fixed is not None:
+        rho[fixed] = rho_prev[fixed]
+    return rho
 
 
 def _chol(Q: np.ndarray):

@@ -582,28 +582,15 @@ def _subsample(cams: list[dict], stride: int) -> list[np.ndarray]:
 def _solve_subsampled(cams: list[dict], subs: list[np.ndarray], grid: EnvGrid, texel_index: np.ndarray, setup,
                       sigma):
     """The joint solve on the rows ``subs`` of each camera (:func:`_subsample`), then every pixel's albedo at its
-    envmaps: per pixel and channel the 1-D least squares over the L targets, clipped to (0, 1] (the exact rho-step
-    when lp = 0). Returns (result with rho for all rows, auto, pixels fitted)."""
-    from objcam.solvers.joint import DEFAULT_RHO_MIN
+    envmaps (:func:`objcam.solvers.joint.albedo_at`, the exact rho-step when lp = 0). Returns (result with rho for
+    all rows, auto, pixels fitted)."""
+    from objcam.solvers.joint import albedo_at
     from objcam.solvers.jointauto import solve_joint_auto
 
     blocks = [(c["A"][s], c["Y"][s], c["tr"].pixel_index[c["rows"]][s], c["tr"].image_shape, c["rho0"][s],
                c["fixed"][s]) for c, s in zip(cams, subs)]
     res, auto = solve_joint_auto(blocks, grid, texel_index, setup, sigma=sigma)
-    Xf = res.x.reshape(res.x.shape[0], -1)
-    rho = []
-    for c in cams:
-        A = c["A"]
-        S = np.empty((A.shape[0], Xf.shape[1]))  # (M, L C) shading, in row blocks (no float64 copy of A')
-        for r0 in range(0, A.shape[0], 8192):
-            S[r0:r0 + 8192] = A[r0:r0 + 8192].astype(np.float64) @ Xf
-        S = S.reshape(c["Y"].shape)
-        num = np.einsum("mlc,mlc->mc", S, c["Y"])
-        den = np.einsum("mlc,mlc->mc", S, S)
-        r = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
-        r = np.clip(r, DEFAULT_RHO_MIN, 1.0)
-        r[c["fixed"]] = c["rho0"][c["fixed"]]
-        rho.append(r)
+    rho = [albedo_at(c["A"], c["Y"], res.x, c["rho0"], c["fixed"]) for c in cams]
     return dataclasses.replace(res, rho=rho), auto, sum(int(s.size) for s in subs)
 
 
