@@ -598,8 +598,9 @@ class _Joint:
     def shading(self, X: np.ndarray) -> list[np.ndarray]:
         """S_p = A'_p x: list of (M_p, L, C)."""
         Xf = np.ascontiguousarray(X.reshape(self.n, -1))
-        return [(A64 @ Xf if A64 is not None else _matmul(A, Xf)).reshape(A.shape[0], self.L, self.C)
-                for A, A64 in zip(self.As, self.A64)]
+        with blas_threads():  # a pass over A' (memory-bound): both cores' bandwidth
+            return [(A64 @ Xf if A64 is not None else _matmul(A, Xf)).reshape(A.shape[0], self.L, self.C)
+                    for A, A64 in zip(self.As, self.A64)]
 
     def weighted_col_sq(self, W: list[np.ndarray]) -> np.ndarray:
         """``sum_p (A'_p * A'_p)^T W_p`` (N, k) for weights W_p (M_p, k): the diagonals of the weighted Grams."""
@@ -632,7 +633,8 @@ class _Joint:
             if A.shape[0] == 0:
                 continue
             U = (r[:, None, ch] * Y[:, :, ch]).reshape(A.shape[0], -1)
-            B[:, :, ch] += (A64.T @ U if A64 is not None else _tmatmul(A, U)).reshape(self.n, self.L, ch.size)
+            with blas_threads():
+                B[:, :, ch] += (A64.T @ U if A64 is not None else _tmatmul(A, U)).reshape(self.n, self.L, ch.size)
         return B
 
     def gram(self, rho: list[np.ndarray], c: int, cache: dict, fast: bool = False) -> np.ndarray:
@@ -892,50 +894,59 @@ class _SubspaceGN:
         g -= Cz.T @ lu.solve(grad_r)
 
     def direction(self, rho, X, S, chans) -> np.ndarray:
-        J, k, L = self.J, self.k, self.J.L
+        """(N, L, C) the proposal's step for the channels ``chans`` (zero elsewhere); the channels are
+        independent problems, solved on a thread per core (their products release the GIL)."""
+        # what the threads share is made once before them: the transposed copy of A', each target's prior matrix
+        self.J.cols_t32(0, np.zeros(0, dtype=np.int64))
+        for l in range(self.J.L):
+            self.J.R(l)
         dX = np.zeros_like(X)
-        for c in chans:
-            H = np.zeros((L * k, L * k))
-            g = np.zeros(L * k)
-            act = [X[:, l, c] <= 0 for l in range(L)]
-            Vl = [np.where(act[l][:, None], 0.0, self.V) for l in range(L)]
-            Bl = [self._basis(l, c, act[l]) for l in range(L)]
-            for l in range(L):
-                RVl = J.R(l) @ Vl[l]
-                H[l * k:(l + 1) * k, l * k:(l + 1) * k] += Vl[l].T @ RVl
-                g[l * k:(l + 1) * k] += RVl.T @ X[:, l, c]
-            for p in range(J.P):
-                r = rho[p][:, c]
-                if r.size == 0:
-                    continue
-                s = S[p][:, :, c]
-                res = r[:, None] * s - J.Ys[p][:, :, c]
-                a = np.einsum("ml,ml->m", s, s)
-                r2 = r * r
-                if J.lp > 0:
-                    self._coupled(p, r, s, res, a, Bl, H, g)
-                    continue
-                free = (a > 1e-12 * (a.max() if a.size else 1.0)) & (r > J.rho_min) & (r < 1.0) & ~J.fixed[p]
-                inv_a = np.where(free, 1.0 / np.where(free, a, 1.0), 0.0)
-                # P r = r - s (s.r)/a
-                pres = res - s * (np.einsum("ml,ml->m", s, res) * inv_a)[:, None]
-                for l in range(L):
-                    g[l * k:(l + 1) * k] += Bl[l][p].T.astype(np.float64) @ (r * pres[:, l])
-                    for l2 in range(l, L):
-                        w = (r2 * ((1.0 if l == l2 else 0.0) - s[:, l] * s[:, l2] * inv_a)).astype(np.float32)
-                        blk = ((Bl[l][p] * w[:, None]).T @ Bl[l2][p]).astype(np.float64)
-                        H[l * k:(l + 1) * k, l2 * k:(l2 + 1) * k] += blk
-                        if l2 != l:
-                            H[l2 * k:(l2 + 1) * k, l * k:(l + 1) * k] += blk.T
-            H = 0.5 * (H + H.T)
-            try:
-                fac, _ = _chol(H)
-                dz = -cho_solve(fac, g, check_finite=False)
-            except np.linalg.LinAlgError:
-                continue
-            for l in range(L):
-                dX[:, l, c] = Vl[l] @ dz[l * k:(l + 1) * k]
+        for c, d in zip(chans, parallel_map(lambda c: self._channel(rho, X, S, int(c)), list(chans))):
+            if d is not None:
+                dX[:, :, c] = d
         return dX
+
+    def _channel(self, rho, X, S, c: int) -> np.ndarray | None:
+        J, k, L = self.J, self.k, self.J.L
+        H = np.zeros((L * k, L * k))
+        g = np.zeros(L * k)
+        act = [X[:, l, c] <= 0 for l in range(L)]
+        Vl = [np.where(act[l][:, None], 0.0, self.V) for l in range(L)]
+        Bl = [self._basis(l, c, act[l]) for l in range(L)]
+        for l in range(L):
+            RVl = J.R(l) @ Vl[l]
+            H[l * k:(l + 1) * k, l * k:(l + 1) * k] += Vl[l].T @ RVl
+            g[l * k:(l + 1) * k] += RVl.T @ X[:, l, c]
+        for p in range(J.P):
+            r = rho[p][:, c]
+            if r.size == 0:
+                continue
+            s = S[p][:, :, c]
+            res = r[:, None] * s - J.Ys[p][:, :, c]
+            a = np.einsum("ml,ml->m", s, s)
+            r2 = r * r
+            if J.lp > 0:
+                self._coupled(p, r, s, res, a, Bl, H, g)
+                continue
+            free = (a > 1e-12 * (a.max() if a.size else 1.0)) & (r > J.rho_min) & (r < 1.0) & ~J.fixed[p]
+            inv_a = np.where(free, 1.0 / np.where(free, a, 1.0), 0.0)
+            # P r = r - s (s.r)/a
+            pres = res - s * (np.einsum("ml,ml->m", s, res) * inv_a)[:, None]
+            for l in range(L):
+                g[l * k:(l + 1) * k] += Bl[l][p].T.astype(np.float64) @ (r * pres[:, l])
+                for l2 in range(l, L):
+                    w = (r2 * ((1.0 if l == l2 else 0.0) - s[:, l] * s[:, l2] * inv_a)).astype(np.float32)
+                    blk = ((Bl[l][p] * w[:, None]).T @ Bl[l2][p]).astype(np.float64)
+                    H[l * k:(l + 1) * k, l2 * k:(l2 + 1) * k] += blk
+                    if l2 != l:
+                        H[l2 * k:(l2 + 1) * k, l * k:(l + 1) * k] += blk.T
+        H = 0.5 * (H + H.T)
+        try:
+            fac, _ = _chol(H)
+            dz = -cho_solve(fac, g, check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        return np.stack([Vl[l] @ dz[l * k:(l + 1) * k] for l in range(L)], axis=1)
 
 
 class _Anderson:
@@ -1105,6 +1116,10 @@ def solve_joint(
         col_cj = np.array([cpos[c] for _, c in cols])
 
         def apply_Q(V, which):
+            with blas_threads():  # two passes over A'
+                return _apply_Q(V, which)
+
+        def _apply_Q(V, which):
             which = np.asarray(which)
             out = np.zeros_like(V)
             for A, A64, w in zip(J.As, J.A64, W):

@@ -42,6 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from objcam.scene import use_mitsuba
+from objcam.threads import parallel_map
 from objcam.transport.geometry import PixelSamples, SampleParts, SceneGeometry
 from objcam.transport.pixels import sobol4, to_unit
 
@@ -620,7 +621,8 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
     # the indirect part, itself a few % of A), for the wanted rows only
     dA = np.zeros((rows.size, parts["E"].shape[2]), np.float32)
     for c in range(C):
-        diff = (_node_light(parts, scale, c, np.float32) - _node_light(parts, np.ones(n_nodes), c, np.float32))
-        dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ diff) / C
+        # the two propagations are independent sparse products (scipy releases the GIL): one per core
+        lit, base = parallel_map(lambda sc, c=c: _node_light(parts, sc, c, np.float32), [scale, np.ones(n_nodes)])
+        dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ (lit - base)) / C
     return dA, {"cells_updated": int(upd.sum()), "cell_albedo_before": float(np.mean(old[upd])),
                 "cell_albedo_after": float(np.mean(new[upd]))}
