@@ -44,6 +44,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from objcam.solvers.basis import group_sizes
 from objcam.solvers.nnls import SolveResult, solve_exact
 from objcam.solvers.regularization import regularized_gram
 
@@ -92,14 +93,28 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 yy: np.ndarray, D: sp.csr_matrix, ls_abs: float, lr_abs: float, steps: int = 6,
                 eps_rel: float = 0.05, tol: float = 1e-4,
                 solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
-                tone_floor: float = 0.05) -> EdgeResult:
+                tone_floor: float = 0.05, basis: sp.spmatrix | None = None) -> EdgeResult:
     """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
     grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
     A_c^T y for the channels ``chans[b]`` it serves (a grey A: one block serving [0, 1, 2]).
     yy: (C,) sum of y_c^2 per channel (for the objective's value only).
     Stops after ``steps`` reweightings or when F decreases by less than ``tol`` relative.
+    basis: optional (N, N') 0/1 matrix P of texel groups (objcam.solvers.joint.polar_merge_basis): F is minimised
+    over x = P z (grams, rhs and D are given on the N texels and merged here; the edge means of the tone weights
+    and the ridge are those of the fine x, so F is the same function restricted to that subspace). The returned
+    x is P z; ``results`` hold the merged problem's solves (their KKT residuals are in z).
     """
+    ridge_w = None
+    M = edge_means(D) if tone > 0 else None
+    if basis is not None:
+        P = sp.csr_matrix(basis)
+        PT = P.T.tocsr()
+        grams = [np.asarray(PT @ (PT @ G).T) for G in grams]  # P^T G P (G symmetric)
+        rhs = [np.asarray(PT @ np.asarray(B).reshape(P.shape[0], -1)) for B in rhs]
+        D = sp.csr_matrix(D @ P)
+        M = None if M is None else sp.csr_matrix(M @ P)
+        ridge_w = group_sizes(P)
     n = D.shape[1]
     n_ch = sum(len(c) for c in chans)
     X = np.zeros((n, n_ch))
@@ -107,7 +122,6 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         raise ValueError("tone must be >= 0 and tone_floor > 0")
     w = np.ones(D.shape[0])
     bw = np.ones(D.shape[0])  # tone weights b_e
-    M = edge_means(D) if tone > 0 else None
     results: list[SolveResult] = []
     passive: list[np.ndarray | None] = [None] * len(grams)
     history: list[float] = []
@@ -119,13 +133,16 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
             Xc = X[:, list(ch)]
             data += float(np.sum(Xc * (G @ Xc)) - 2 * np.sum(B * Xc))
         prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
-        return data + float(yy.sum()) + lr_abs * float(np.sum(X * X)) + prior
+        ridge = float(np.sum(X * X)) if ridge_w is None else float(np.einsum("n,nc,nc->", ridge_w, X, X))
+        return data + float(yy.sum()) + lr_abs * ridge + prior
 
     for step in range(steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
-            Q = regularized_gram(G, Dw, ls_abs, lr_abs)
+            Q = regularized_gram(G, Dw, ls_abs, lr_abs if ridge_w is None else 0.0)
+            if ridge_w is not None:
+                Q[np.diag_indices_from(Q)] += lr_abs * ridge_w
             res = solve(Q, B, passive0=passive[b]) if solve is solve_exact else solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0
@@ -144,4 +161,6 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
             bw = tone_weights(M, X, tone, tone_floor)
         w = bw * s / np.maximum(r, eps)
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
+    if basis is not None:
+        X = np.asarray(P @ X)
     return EdgeResult(X, results, history, len(history) - 1, s, kept, float(tone))

@@ -140,6 +140,7 @@ from scipy.sparse.linalg import splu
 
 from objcam.envmap import EnvGrid
 from objcam.metrics import relative_rmse
+from objcam.solvers.basis import group_sizes
 from objcam.solvers.jointqp import solve_nnls_pcg
 from objcam.solvers.nnls import kkt_residual, solve_exact
 from objcam.solvers.regularization import DEFAULT_LR_REL, DEFAULT_LS_REL, difference_operator
@@ -465,10 +466,12 @@ class JointResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+
 class _Joint:
     """Prepared data and the per-channel kernels of the joint problem."""
 
-    def __init__(self, blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior="smooth", edge_eps=0.05):
+    def __init__(self, blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior="smooth", edge_eps=0.05,
+                 basis: sp.spmatrix | None = None):
         blocks = [_as_block(b) for b in blocks]
         if not blocks:
             raise NoValidPixelsError("joint solve: no camera blocks given -- nothing constrains the envmap")
@@ -536,6 +539,16 @@ class _Joint:
             for k, (A, G) in enumerate(zip(self.As, self.Gs)):
                 if G is None and A.shape[0] > 1:
                     raise ValueError(f"camera {k}: lp > 0 needs pixel_index and image_shape for the albedo prior")
+        self.basis = None if basis is None else sp.csr_matrix(basis)
+        self.ridge_w = np.ones(n)
+        if self.basis is not None:
+            # x = P z: the solve runs on the merged columns A' P; the priors are those of the fine x
+            if self.basis.shape[0] != n:
+                raise ValueError(f"basis has {self.basis.shape[0]} rows, expected {n} kept texels")
+            PT = self.basis.T.tocsr()
+            self.As = [np.ascontiguousarray((PT @ A.T).T, dtype=A.dtype) for A in self.As]
+            self.n = n = self.basis.shape[1]
+            self.ridge_w = group_sizes(self.basis)
         self.Gs = [G if G is not None else sp.csr_matrix((0, A.shape[0])) for A, G in zip(self.As, self.Gs)]
         self.GtG = [(G.T @ G).tocsr() for G in self.Gs]
         # A' in float64 for the shading and right-hand sides (each a pass over A', memory-bound: converting float32
@@ -546,6 +559,8 @@ class _Joint:
         self._AT32: list | None = None
         self._Asq: list | None = None
         self.D = difference_operator(grid, texel_index)
+        if self.basis is not None:
+            self.D = sp.csr_matrix(self.D @ self.basis)
         if prior not in PRIORS:
             raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
         if not edge_eps > 0:
@@ -661,7 +676,7 @@ class _Joint:
         key = hash(self.W[l].tobytes())
         hit = self._R_cache.get(l)
         if hit is None or hit[0] != key:
-            R = sp.csr_matrix(self.ls * (self.D.T @ sp.diags(self.W[l]) @ self.D) + self.lr * sp.identity(self.n))
+            R = sp.csr_matrix(self.ls * (self.D.T @ sp.diags(self.W[l]) @ self.D) + self.lr * sp.diags(self.ridge_w))
             hit = (key, R, R.toarray())
             self._R_cache[l] = hit
         return hit[1], hit[2]
@@ -700,18 +715,19 @@ class _Joint:
         if not self.huber_on:
             Xf = X.reshape(self.n, -1)
             DX = self.D @ Xf
-            return float(self.ls * np.sum(DX * DX) + self.lr * np.sum(Xf * Xf))
+            return float(self.ls * np.sum(DX * DX) + self.lr * np.sum(self.ridge_w[:, None] * Xf * Xf))
         r = self.edge_norms(X)
         h = np.where(r <= self.edge_thr[:, None], r * r / (2 * self.edge_thr[:, None]),
                      r - self.edge_thr[:, None] / 2)
-        return float(self.ls * 2 * self.C * np.sum(self.edge_s * h.sum(axis=1)) + self.lr * np.sum(X * X))
+        return float(self.ls * 2 * self.C * np.sum(self.edge_s * h.sum(axis=1))
+                     + self.lr * np.einsum("n,nlc,nlc->", self.ridge_w, X, X))
 
     def reg_x(self, X: np.ndarray) -> np.ndarray:
         """(C,) the quadratic prior in use: sum_l ls ||diag(sqrt(W_l)) D x_lc||^2 + lr ||x_lc||^2 (for the edge
         prior the majoriser at the current tangent point, up to a constant)."""
         DX = (self.D @ X.reshape(self.n, -1)).reshape(-1, self.L, self.C)
         v = self.ls * np.einsum("le,elc->c", self.W, DX * DX)
-        return v + self.lr * np.einsum("nlc,nlc->c", X, X)
+        return v + self.lr * np.einsum("n,nlc,nlc->c", self.ridge_w, X, X)
 
     def reg_rho(self, rho: list[np.ndarray]) -> np.ndarray:
         """(C,) lp sum_p ||G_p rho_pc||^2."""
@@ -739,7 +755,7 @@ class _Joint:
         between the channels, split equally (so the sum is F)."""
         if not self.huber_on:
             return self.objective(rho, X, S)
-        ridge = self.lr * np.einsum("nlc,nlc->c", X, X)
+        ridge = self.lr * np.einsum("n,nlc,nlc->c", self.ridge_w, X, X)
         return (self.data(rho, S) + self.reg_rho(rho) + ridge
                 + (self.prior_value(X) - float(ridge.sum())) / self.C)
 
@@ -1013,6 +1029,7 @@ def solve_joint(
     xsolver: str = "gram",
     cg_refresh: int = 12,
     polish: bool = True,
+    basis: sp.spmatrix | None = None,
 ) -> JointResult:
     """Jointly recover the albedo of every camera and the L envmaps (per colour channel); see the module docstring.
 
@@ -1051,6 +1068,9 @@ def solve_joint(
     polish: do that final exact x-step (default). ``False`` skips it for a solve whose result is only a starting
         point (the solve stage's first solve before a bounce refit): x is then the last sweep's x-step on float32
         Gram matrices (``kkt_x`` says how exact).
+    basis: optional (N, N') 0/1 matrix P of texel groups (:func:`objcam.solvers.basis.texel_basis`): the solve
+        runs on z with x = P z (A' P, the priors of the fine x: ``D P`` and the ridge ``||P z||^2``; the weights
+        stay relative to the fine A'), and returns x = P z; ``kkt_x`` is the merged problem's.
 
     Raises :class:`NoValidPixelsError` (a ValueError) when no camera has a valid pixel. Runs with one BLAS thread.
     """
@@ -1063,7 +1083,8 @@ def solve_joint(
     if xsolver not in ("pcg", "gram"):
         raise ValueError(f"xsolver must be 'pcg' or 'gram', got {xsolver!r}")
     t_start = time.perf_counter()
-    J = _Joint(blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior=prior, edge_eps=edge_eps)
+    J = _Joint(blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior=prior, edge_eps=edge_eps,
+               basis=basis)
     n, L, C, P = J.n, J.L, J.C, J.P
     exact = method == "exact"
     accelerate = accelerate and exact
@@ -1251,8 +1272,8 @@ def solve_joint(
                 DX = (J.D @ X[:, :, c])  # (E, L)
                 others = (np.einsum("elc,elc->el", *(2 * [(J.D @ X.reshape(n, -1)).reshape(-1, L, C)]))
                           - DX * DX)
-                xx_c = float(np.sum(X[:, :, c] ** 2))
-                xx_o = float(np.sum(X * X)) - xx_c
+                xx_c = float(np.einsum("n,nl,nl->", J.ridge_w, X[:, :, c], X[:, :, c]))
+                xx_o = float(np.einsum("n,nlc,nlc->", J.ridge_w, X, X)) - xx_c
                 thr = J.edge_thr[None, :]
 
                 def prior_at(cs):
@@ -1529,6 +1550,9 @@ def solve_joint(
         kkt_rho = J.rho_kkt(rho, S)
         rmax = np.max([r.max(axis=0) for r in rho if r.shape[0]], axis=0)
     hist_arr = np.array(hist)
+    above = float(np.mean(J.edge_norms(X) > J.edge_thr[:, None])) if J.huber_on else 0.0
+    if J.basis is not None:
+        X = (J.basis @ X.reshape(n, -1)).reshape(-1, L, C)
     return JointResult(
         x=X,
         rho=rho,
@@ -1557,7 +1581,7 @@ def solve_joint(
             operator_applications=ref["applications"], pivot_rounds=ref["rounds"],
             prior=prior if J.huber_on or prior == "smooth" else "smooth (edges: no edge scale)",
             edge_scale=J.edge_s.tolist(), edge_eps=J.edge_eps_rel, mm_steps=stats["mm_steps"],
-            edges_above_threshold=(float(np.mean(J.edge_norms(X) > J.edge_thr[:, None])) if J.huber_on else 0.0),
+            edges_above_threshold=above,
         ),
     )
 

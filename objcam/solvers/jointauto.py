@@ -26,6 +26,7 @@ import numpy as np
 
 from objcam.envmap import EnvGrid
 from objcam.solvers.autoreg import choose_weights
+from objcam.solvers.basis import texel_basis
 from objcam.solvers.joint import CameraBlock, JointResult, solve_joint
 
 
@@ -38,7 +39,8 @@ class JointSetup:
     solve. method: "exact" or "paper" (alpha: its envmap damping). prior: "edges" (Huber; edge_eps its threshold,
     edge_steps its majorise-minimise x-steps per sweep) or "smooth" (quadratic); the paper's method is always
     smooth. tol, max_iter: the final solve's stopping rule. polish: end on the exact float64 x-step
-    (:func:`objcam.solvers.solve_joint`; off for a solve that only provides a starting point).
+    (:func:`objcam.solvers.solve_joint`; off for a solve that only provides a starting point). texel_group: the
+    envmap basis' group size (:func:`objcam.solvers.basis.texel_basis`; 0: one unknown per texel).
     """
 
     method: str = "exact"
@@ -54,6 +56,7 @@ class JointSetup:
     max_iter: int = 100
     alpha: float = 0.5
     polish: bool = True
+    texel_group: float = 0.0
 
 
 def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel_index: np.ndarray,
@@ -66,7 +69,8 @@ def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel
     Returns the final :class:`JointResult` and a dict on the automatic choice (None when ls was given).
     """
     kw: dict[str, Any] = dict(lr=setup.lr, lp=setup.lp, method=setup.method, max_iter=setup.max_iter,
-                              prior=setup.prior if setup.method == "exact" else "smooth", polish=setup.polish)
+                              prior=setup.prior if setup.method == "exact" else "smooth", polish=setup.polish,
+                              basis=texel_basis(grid, texel_index, setup.texel_group))
     if setup.method == "paper":
         kw["alpha"] = setup.alpha
     else:

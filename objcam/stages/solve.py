@@ -36,14 +36,22 @@ from objcam.errors import StageError
 from objcam.image_io import atomic_write_text, write_exr, write_png, write_tonemapped_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
+from objcam.solvers.basis import texel_basis, unknowns
 from objcam.solvers.regularization import DEFAULT_LR_REL
 from objcam.threads import single_blas_thread
 
 NAME = "solve"
 DEPS = ("scene", "transport")
-VERSION = "4"
+VERSION = "5"
 CODE_DEPS = ("objcam.solvers", "objcam.transport")
 
+#: Envmap basis (objcam.solvers.basis), the largest group per row in equator-texel solid angles. Measured on the
+#: bench (bench/results.md, session 9): a known albedo resolves the polar texels' texture (forest SSIM 0.777 with
+#: one unknown per texel, 0.775 at 1, 0.765 at sqrt 2; courtyard 0.787 / 0.785 / 0.786), so it merges only what
+#: spans less than one equator texel; with unknown albedo the albedo, not the basis, limits the envmap (dots
+#: scene SSIM 0.607 / 0.609 / 0.609) and sqrt 2 solves 1.4x faster than the texels.
+TEXEL_GROUP_KNOWN = 1.0
+TEXEL_GROUP_JOINT = float(np.sqrt(2.0))
 #: Unknown-albedo smoothness when ls is not given: measured best on the bundled path-traced targets, whose
 #: model error (indirect light, ~1-2% noise) GCV cannot see (bench/results.md).
 KNOWN_LS_REL = 0.1
@@ -131,6 +139,12 @@ class Params(BaseModel):
                                           "albedo with prior=edges, ls = factor x sigma (None: "
                                           f"{EDGE_LS_PER_SIGMA:g}); otherwise (smooth, paper, the joint solve) "
                                           f"ls = factor x sigma^2 (None: {LS_NOISE_FACTOR:g})")
+    texel_group: float | None = Field(
+        None, ge=0, description="merge each lat-long row's texels into groups spanning at most texel_group x the "
+        "equator texel's solid angle (objcam.solvers.basis: the same objective over envmaps constant on each "
+        "group, written back on the lat-long grid); 0: one unknown per texel, the method's parameterisation. "
+        f"None: {TEXEL_GROUP_KNOWN:g} for a known albedo, {TEXEL_GROUP_JOINT:.3g} for the joint solve "
+        "(bench/results.md). method=adam always optimises the texels")
     lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
     lp: float | None = Field(None, ge=0, description="albedo smoothness weight (unknown albedo), relative to the "
                              f"albedo data term; None: 0 with >= 2 illuminations per camera, {LP_ONE_ILLUMINATION} "
@@ -280,13 +294,17 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
                         G = G - solvers.gram(tr.A[c][~use])
                     ls_abs, lr_abs = solvers.absolute_weights(G, ls, lr)
                     D = solvers.difference_operator(grid, tr.texel_index)
-                    gram_cache[key] = solvers.regularized_gram(G, D, ls_abs, lr_abs)
-                Q = gram_cache[key]
+                    Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
+                    P = texel_basis(grid, tr.texel_index, _texel_group(params, known=True))
+                    gram_cache[key] = (Q, None) if P is None else (np.asarray(P.T @ (P.T @ Q).T), P)
+                Q, P = gram_cache[key]
                 chans = [0, 1, 2] if C == 1 else [c]
                 Yc = y[use][:, chans]
                 B = solvers.rhs(Ac, Yc, fast=True)
+                if P is not None:  # the same objective over x = P z: P^T Q P, P^T b (objcam.solvers.basis)
+                    B = np.asarray(P.T @ B)
                 res = (solvers.solve_exact if params.method == "exact" else solvers.solve_paper)(Q, B)
-                X[:, chans] = res.x
+                X[:, chans] = res.x if P is None else np.asarray(P @ res.x.reshape(P.shape[1], -1))
                 kkt[chans], iters = res.kkt_residual, max(iters, res.iterations)
                 obj[chans] = solvers.objective(Q, B, res.x, np.einsum("ij,ij->j", Yc, Yc))
         solve_s = time.perf_counter() - t0
@@ -298,6 +316,7 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
         rel_res = float(np.linalg.norm(fit - y[use]) / max(np.linalg.norm(y[use]), 1e-30))
         info = {
             "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
+            **_basis_info(grid, tr.texel_index, params, known=True),
             "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()), "channels_in_A": int(C),
             "solve_seconds": round(solve_s, 4), "iterations": int(iters), "kkt_residual_max": float(kkt.max()),
             "objective": obj.tolist(), "relative_image_residual": rel_res, "ls_relative": ls, "lr_relative": lr,
@@ -310,6 +329,21 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
         _write_target(out / name, env, mask, pooled, pooled_ok, pred, info)
         per_target[name] = info
     return per_target
+
+
+def _texel_group(params: Params, known: bool) -> float:
+    """The envmap basis' group size (objcam.solvers.basis) for this solve: 0 (texels) for method=adam."""
+    if params.method == "adam":
+        return 0.0
+    if params.texel_group is not None:
+        return float(params.texel_group)
+    return TEXEL_GROUP_KNOWN if known else TEXEL_GROUP_JOINT
+
+
+def _basis_info(grid: EnvGrid, texel_index: np.ndarray, params: Params, known: bool) -> dict:
+    """solve.json's record of the envmap's unknowns (objcam.solvers.basis)."""
+    g = _texel_group(params, known)
+    return {"texel_group": g, "unknowns": unknowns(texel_index, texel_basis(grid, texel_index, g))}
 
 
 def _noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: Params, f: int = 1,
@@ -356,7 +390,8 @@ def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, l
     D = solvers.difference_operator(grid, tr.texel_index)
     eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
     res = solve_edges(grams, rhs, chans, np.einsum("ij,ij->j", Y, Y), D, ls_abs, lr_abs, steps=params.edge_steps,
-                      eps_rel=eps, tone=params.edge_tone, tone_floor=params.edge_tone_floor)
+                      eps_rel=eps, tone=params.edge_tone, tone_floor=params.edge_tone_floor,
+                      basis=texel_basis(grid, tr.texel_index, _texel_group(params, known=True)))
     kkt = np.zeros(3)
     iters = 0
     for r, ch in zip(res.results, chans):
@@ -450,7 +485,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         ls=None if params.auto_reg != "off" else ls_fixed * conv, lr=params.lr * conv,
         lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
         rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=params.tol, max_iter=params.max_iter,
-        alpha=params.alpha)
+        alpha=params.alpha, texel_group=_texel_group(params, known=False))
     sigma = [s for c in cams for s in c["sigma"] if s is not None] or None
 
     def solve(rho, stp):
@@ -539,7 +574,8 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "pixels_albedo_known": n_held,
                 "illumination": ill, "cameras_in_problem": len(cams), "illuminations_in_problem": L,
                 "targets_in_problem": [t for cc in cams for t in cc["targets"]],
-                "texels": int(comp.texel_index.size), "pixels_used": int(rows.size),
+                "texels": int(comp.texel_index.size), **_basis_info(grid, comp.texel_index, params, known=False),
+                "pixels_used": int(rows.size),
                 "pixels_excluded": int(tr.pixel_index.size - rows.size),
                 "pixels_excluded_mixed": c["n_mixed"],
                 "pixels_albedo_estimated": int(alb_mask.sum()),

@@ -1,0 +1,67 @@
+"""Envmap bases of the solves: which unknowns stand for the kept lat-long texels.
+
+A lat-long row holds as many texels as the equator's, but a texel of row r spans ``sin(theta_r)`` times the
+equator texel's solid angle: at 32 x 64 the top row's texels are 1/20 of it. The shadows of a diffuse occluder
+integrate the light over solid angle, so those slivers are not what the photos resolve; they are unknowns that
+only the prior pins down, and every one of them costs the solves (Gram matrices grow with N^2, factorisations
+with N^3).
+
+The merged basis with group size ``g`` joins the kept texels of each row into groups of ``k_r`` adjacent
+columns, ``k_r`` the largest divisor of the width with ``k_r sin(theta_r) <= g``: no group spans more than g
+times the equator texel's solid angle. At 32 x 64, of the 1,088 texels kept above a plane's horizon, g = 1
+leaves 868 unknowns (the five rows at the zenith merge 16, 4, 4, 2, 2 texels) and g = sqrt(2) 748 (16, 8, 4, 4,
+2, 2, 2, 2); the rows around the horizon stay whole.
+
+The solves minimise the same objective as on the texels, restricted to envmaps ``x = P z`` constant over each
+group (P the N x N' 0/1 membership matrix): the data term on the merged columns ``A P``, the smoothness prior on
+``D P`` (edges inside a group are zero), the ridge on ``||P z||^2 = sum_g k_g z_g^2``, so the weights keep their
+meaning; the result is written back as ``x = P z`` on the lat-long grid. Measured on the bench (bench/results.md,
+session 9): see objcam.stages.solve's defaults.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from objcam.envmap import EnvGrid
+
+
+def row_group_sizes(grid: EnvGrid, group: float) -> np.ndarray:
+    """(H,) columns merged per group in each row: the largest divisor k of the width with k sin(theta) <= group
+    (at least 1)."""
+    w = grid.width
+    divisors = np.array([d for d in range(1, w + 1) if w % d == 0], dtype=np.int64)
+    theta = np.pi * (np.arange(grid.height) + 0.5) / grid.height
+    limit = group / np.maximum(np.sin(theta), 1e-12) * (1 + 1e-9)
+    ok = divisors[None, :] <= limit[:, None]
+    return np.where(ok, divisors[None, :], 1).max(axis=1)
+
+
+def texel_basis(grid: EnvGrid, texel_index: np.ndarray, group: float) -> sp.csr_matrix | None:
+    """(N, N') membership matrix P of the merged basis with group size ``group`` over the kept texels
+    ``texel_index`` (full-grid indices, row-major), or None when nothing merges (``group`` < 2 sin of every
+    kept row, e.g. 0: one unknown per texel). Groups hold only kept texels and never wrap around the azimuth
+    seam; their order follows the texels'."""
+    if not group >= 0:
+        raise ValueError(f"texel group size must be >= 0, got {group!r}")
+    t = np.asarray(texel_index, dtype=np.int64).ravel()
+    if t.size == 0:
+        return None
+    r, c = t // grid.width, t % grid.width
+    k = row_group_sizes(grid, group)[r]
+    if np.all(k == 1):
+        return None
+    _, gid = np.unique(r * grid.width + (c // k) * k, return_inverse=True)
+    gid = gid.ravel()
+    return sp.csr_matrix((np.ones(t.size), (np.arange(t.size), gid)), shape=(t.size, int(gid.max()) + 1))
+
+
+def group_sizes(P: sp.spmatrix) -> np.ndarray:
+    """(N',) texels per group: the ridge weights ``diag(P^T P)`` of the merged problem."""
+    return np.asarray(sp.csr_matrix(P).sum(axis=0)).ravel()
+
+
+def unknowns(texel_index: np.ndarray, P: sp.spmatrix | None) -> int:
+    """Number of unknowns per envmap channel: the groups of P, else the texels."""
+    return int(np.size(texel_index) if P is None else P.shape[1])

@@ -1,0 +1,117 @@
+"""The merged envmap basis (objcam.solvers.basis): its groups, and that the solves minimise the texels' objective
+restricted to envmaps constant on each group."""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from objcam.envmap import EnvGrid
+from objcam.solvers import difference_operator
+from objcam.solvers.basis import group_sizes, row_group_sizes, texel_basis, unknowns
+from objcam.solvers.edges import huber, solve_edges
+from objcam.solvers.joint import joint_objective, solve_joint
+
+
+def _upper(grid: EnvGrid) -> np.ndarray:
+    """Texels of the upper hemisphere plus the first row below (what a support plane keeps)."""
+    return np.arange((grid.height // 2 + 1) * grid.width)
+
+
+def test_groups_at_32x64_span_at_most_the_group_size_in_equator_texels():
+    grid = EnvGrid(32)
+    t = _upper(grid)
+    assert unknowns(t, texel_basis(grid, t, 0.0)) == 1088
+    assert texel_basis(grid, t, 0.0) is None
+    for g, want, rows in ((1.0, 868, [16, 4, 4, 2, 2, 1]), (math.sqrt(2), 748, [16, 8, 4, 4, 2, 2, 2, 2, 1])):
+        P = texel_basis(grid, t, g)
+        assert P.shape == (t.size, want)
+        assert list(row_group_sizes(grid, g)[: len(rows)]) == rows
+        # a partition of the kept texels: one group each, 0/1 entries
+        assert np.array_equal(np.asarray(P.sum(axis=1)).ravel(), np.ones(t.size))
+        sizes = group_sizes(P)
+        theta = np.pi * (t // grid.width + 0.5) / grid.height
+        for j in range(P.shape[1]):
+            members = np.flatnonzero(P[:, j].toarray().ravel())
+            r, c = t[members] // grid.width, t[members] % grid.width
+            assert np.all(r == r[0]), "a group stays in one row"
+            assert np.array_equal(np.sort(c), np.arange(c.min(), c.min() + c.size)), "adjacent columns, no wrap"
+            assert sizes[j] == members.size
+            assert sizes[j] * math.sin(theta[members[0]]) <= g + 1e-9  # at most g equator texels of solid angle
+
+
+def test_group_sizes_divide_any_width_and_bad_sizes_are_refused():
+    for h in (8, 12, 24):
+        grid = EnvGrid(h)
+        k = row_group_sizes(grid, 1.0)
+        assert np.all(grid.width % k == 0) and k[h // 2] == 1
+    with pytest.raises(ValueError, match="texel group"):
+        texel_basis(EnvGrid(8), np.arange(10), -1.0)
+
+
+def _problem(seed: int, grid: EnvGrid, t: np.ndarray, m: int = 600):
+    rng = np.random.default_rng(seed)
+    A = rng.uniform(0.0, 1.0, (m, t.size)) * (rng.uniform(size=(m, t.size)) < 0.5)
+    return rng, A
+
+
+def test_the_merged_edge_solve_minimises_the_texels_objective_over_group_constant_envmaps():
+    """solve_edges with a basis returns x = P z, exactly optimal for its merged problem (KKT), and the objective
+    it reports is the texels' objective F evaluated at that x; with P = I it is the plain solve."""
+    grid = EnvGrid(8)
+    t = _upper(grid)
+    rng, A = _problem(1, grid, t)
+    P = texel_basis(grid, t, math.sqrt(2))
+    x_true = np.asarray(P @ rng.uniform(0.2, 2.0, (P.shape[1], 3)))
+    Y = A @ x_true + 1e-3 * rng.standard_normal((A.shape[0], 3))
+    G, B = A.T @ A, A.T @ Y
+    D = difference_operator(grid, t)
+    yy = np.einsum("ij,ij->j", Y, Y)
+    ls, lr = 1e-2 * np.mean(np.diag(G)), 1e-3 * np.mean(np.diag(G))  # a ridge large enough to matter
+    res = solve_edges([G], [B], [[0, 1, 2]], yy, D, ls, lr, steps=4, eps_rel=0.05, basis=P)
+    x = res.x
+    # constant on every group
+    for j in range(P.shape[1]):
+        members = np.flatnonzero(P[:, j].toarray().ravel())
+        assert np.ptp(x[members], axis=0).max() == 0.0
+    assert max(float(r.kkt_residual.max()) for r in res.results) < 1e-8
+    # the reported objective is the texels' F at x (tone off: F = data + ridge + ls s 2C sum huber(r_e, eps))
+    s, eps = res.edge_scale, 0.05 * res.edge_scale
+    r_e = np.sqrt(np.mean((D @ x) ** 2, axis=1))
+    F = (float(np.sum(x * (G @ x)) - 2 * np.sum(B * x)) + yy.sum() + lr * float(np.sum(x * x))
+         + ls * s * 2 * 3 * float(huber(r_e, eps).sum()))
+    assert F == pytest.approx(res.objective_history[-1], rel=1e-10)
+    # noise-free-ish data and a group-constant truth: recovered to the noise level
+    assert np.linalg.norm(x - x_true) / np.linalg.norm(x_true) < 0.05
+    same = solve_edges([G], [B], [[0, 1, 2]], yy, D, ls, lr, steps=4, eps_rel=0.05,
+                       basis=sp.identity(t.size, format="csr"))
+    plain = solve_edges([G], [B], [[0, 1, 2]], yy, D, ls, lr, steps=4, eps_rel=0.05)
+    np.testing.assert_allclose(same.x, plain.x, rtol=1e-9, atol=1e-12)
+
+
+def test_the_merged_joint_solve_reports_the_texels_objective_and_recovers_a_group_constant_truth():
+    """solve_joint with a basis: x = P z; its objective equals joint_objective (the texels' problem) at the
+    returned (x, rho), and on noise-free data with a group-constant envmap the albedo and envmap come back."""
+    grid = EnvGrid(8)
+    t = _upper(grid)
+    rng, A = _problem(2, grid, t, m=800)
+    P = texel_basis(grid, t, 1.0)
+    L = 3
+    x_true = np.asarray(P @ rng.uniform(0.2, 2.0, (P.shape[1], L * 3))).reshape(t.size, L, 3)
+    rho = rng.uniform(0.3, 0.9, (A.shape[0], 3))
+    fixed = rng.uniform(size=A.shape[0]) < 0.1
+    Y = rho[:, None, :] * np.einsum("mn,nlc->mlc", A, x_true)
+    rho0 = np.where(fixed[:, None], rho, 0.5)
+    block = (A.astype(np.float32), Y, None, None, rho0, fixed)
+    kw = dict(ls=1e-7, lr=1e-9, tol=1e-10, max_iter=400)
+    res = solve_joint([block], grid, t, basis=P, **kw)
+    assert res.x.shape == (t.size, L, 3)
+    for j in range(P.shape[1]):
+        members = np.flatnonzero(P[:, j].toarray().ravel())
+        assert np.ptp(res.x[members], axis=0).max() == 0.0
+    fine = joint_objective([block], grid, t, res.x, res.rho, ls=kw["ls"], lr=kw["lr"])
+    # to float32 rounding: A' P is summed into float32 columns, as A' is stored (measured 2e-8)
+    np.testing.assert_allclose(fine, res.objective, rtol=1e-6)
+    assert np.linalg.norm(res.x - x_true) / np.linalg.norm(x_true) < 1e-2
+    assert np.linalg.norm(res.rho[0] - rho) / np.linalg.norm(rho) < 1e-2
