@@ -103,7 +103,7 @@ class AdamProblem:
         Y = np.stack([data[t][3][rows] for t in names]).astype(np.float64)  # (L, M, 3)
         unknown = tr.unknown_albedo[rows]
         rho_known = np.clip(tr.albedo[rows].astype(np.float64), 1e-3, 1.0)
-        Ap = tr.rho_free()[:, rows]
+        Ap = tr.rho_free(rows)
         Ap = (Ap[0] if Ap.shape[0] == 1 else Ap.mean(axis=0)).astype(np.float64)  # (M, N) for init and prediction
         rho0 = np.where(unknown[:, None], 0.5, rho_known)
         # relative weights as the exact solve's: to mean(diag(A^T A)), A = diag(rho0) A'

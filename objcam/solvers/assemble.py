@@ -98,7 +98,7 @@ def grey_rho_free(transport, rows: np.ndarray, texel_union: np.ndarray) -> np.nd
     With C = 3 (coloured known albedo somewhere) the per-channel A'_c agree for direct light and differ only in
     the interreflections' colour; their mean is used. Columns of texels this camera does not keep are 0.
     """
-    Ap = transport.rho_free()[:, rows]  # (C, M_used, N_own)
+    Ap = transport.rho_free(rows)  # (C, M_used, N_own)
     Ap = Ap[0] if Ap.shape[0] == 1 else Ap.mean(axis=0)
     own = np.asarray(transport.texel_index)
     if own.size == texel_union.size and np.array_equal(own, texel_union):

@@ -256,11 +256,14 @@ class Transport:
         with np.load(self.folder / BOUNCE) as z:
             return {k: z[k] for k in z.files}
 
-    def rho_free(self) -> np.ndarray:
-        """A' = A / rho per pixel and channel where rho > 0 (0 elsewhere), shape (C, M, N)."""
+    def rho_free(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """A' = A / rho per pixel and channel where rho > 0 (0 elsewhere), shape (C, M, N); with ``rows``
+        only those pixels (C, len(rows), N), without a copy of the whole A first."""
         rho = self.albedo.T[: self.channels] if self.channels == 3 else self.albedo.mean(axis=1)[None]
         inv = np.where(rho > 0, 1.0 / np.maximum(rho, 1e-30), 0.0).astype(np.float32)
-        return self.A * inv[:, :, None]
+        if rows is None:
+            return self.A * inv[:, :, None]
+        return np.stack([self.A[c][rows] * inv[c][rows][:, None] for c in range(inv.shape[0])])
 
 
 def write_gram(folder: str | Path) -> float:
