@@ -4,6 +4,7 @@
 - :mod:`.nnls`: :func:`solve_exact` (block principal pivoting, exact to a relative KKT residual ~1e-10).
 - :mod:`.paper`: :func:`solve_paper`, the paper's damped clipped Newton iteration (baseline).
 - :mod:`.problem`: :func:`solve_envmap`, from (A, Y) to x in one call.
+- :mod:`.basis`: the merged envmap basis (texels of a lat-long row joined near the poles) the solve stage uses.
 """
 
 from objcam.solvers.autoreg import choose_weights

@@ -13,7 +13,12 @@ ls may be chosen per problem by ``auto_reg`` (objcam.solvers.jointauto); the def
 albedo are then known only up to one scale per colour channel (c rho, x / c fit equally): solve.json says so and
 evaluate compares after the best-fit scale.
 
-``method=adam``: the gradient-descent baseline through Mitsuba's differentiable renderer (objcam.solvers.adam).
+Both solve for the envmap on a merged basis (objcam.solvers.basis, ``texel_group``): near the poles a row's
+texels are joined into groups of about one equator texel's solid angle, the objective unchanged over envmaps
+constant on each group; the envmap is written back on the full lat-long grid.
+
+``method=adam``: the gradient-descent baseline through Mitsuba's differentiable renderer (objcam.solvers.adam),
+on the texels.
 
 Writes per target ``<target>/``: envmap.exr (full lat-long, 0 where unsolved), envmap_mask.png (255 = solved
 texel), prediction.exr, residual.exr (target - prediction, 0 at unused pixels), target.exr (the pooled target
