@@ -100,7 +100,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     A_c^T y for the channels ``chans[b]`` it serves (a grey A: one block serving [0, 1, 2]).
     yy: (C,) sum of y_c^2 per channel (for the objective's value only).
     Stops after ``steps`` reweightings or when F decreases by less than ``tol`` relative.
-    basis: optional (N, N') 0/1 matrix P of texel groups (objcam.solvers.joint.polar_merge_basis): F is minimised
+    basis: optional (N, N') 0/1 matrix P of texel groups (objcam.solvers.basis.texel_basis): F is minimised
     over x = P z (grams, rhs and D are given on the N texels and merged here; the edge means of the tone weights
     and the ridge are those of the fine x, so F is the same function restricted to that subspace). The returned
     x is P z; ``results`` hold the merged problem's solves (their KKT residuals are in z).

@@ -263,7 +263,13 @@ class Transport:
         inv = np.where(rho > 0, 1.0 / np.maximum(rho, 1e-30), 0.0).astype(np.float32)
         if rows is None:
             return self.A * inv[:, :, None]
-        return np.stack([self.A[c][rows] * inv[c][rows][:, None] for c in range(inv.shape[0])])
+        rows = np.asarray(rows)
+        rows = np.flatnonzero(rows) if rows.dtype == bool else rows
+        out = np.empty((inv.shape[0], rows.size, self.A.shape[2]), np.float32)
+        for c in range(inv.shape[0]):
+            np.take(self.A[c], rows, axis=0, out=out[c])
+            out[c] *= inv[c][rows][:, None]
+        return out
 
 
 def write_gram(folder: str | Path) -> float:
