@@ -57,6 +57,12 @@ def texel_basis(grid: EnvGrid, texel_index: np.ndarray, group: float) -> sp.csr_
     return sp.csr_matrix((np.ones(t.size), (np.arange(t.size), gid)), shape=(t.size, int(gid.max()) + 1))
 
 
+def merge_gram(P: sp.spmatrix, G: np.ndarray) -> np.ndarray:
+    """``P^T G P`` (N', N') for a symmetric (N, N) G: a Gram or regularised Gram matrix on the merged basis."""
+    PT = sp.csr_matrix(P).T.tocsr()
+    return np.asarray(PT @ (PT @ G).T)
+
+
 def group_sizes(P: sp.spmatrix) -> np.ndarray:
     """(N',) texels per group: the ridge weights ``diag(P^T P)`` of the merged problem."""
     return np.asarray(sp.csr_matrix(P).sum(axis=0)).ravel()

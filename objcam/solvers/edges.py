@@ -44,7 +44,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from objcam.solvers.basis import group_sizes
+from objcam.solvers.basis import group_sizes, merge_gram
 from objcam.solvers.nnls import SolveResult, solve_exact
 from objcam.solvers.regularization import regularized_gram
 
@@ -105,13 +105,12 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     and the ridge are those of the fine x, so F is the same function restricted to that subspace). The returned
     x is P z; ``results`` hold the merged problem's solves (their KKT residuals are in z).
     """
-    ridge_w = None
     M = edge_means(D) if tone > 0 else None
+    ridge_w = np.ones(D.shape[1])  # texels per unknown: the ridge of the fine x
     if basis is not None:
         P = sp.csr_matrix(basis)
-        PT = P.T.tocsr()
-        grams = [np.asarray(PT @ (PT @ G).T) for G in grams]  # P^T G P (G symmetric)
-        rhs = [np.asarray(PT @ np.asarray(B).reshape(P.shape[0], -1)) for B in rhs]
+        grams = [merge_gram(P, G) for G in grams]
+        rhs = [np.asarray(P.T @ np.asarray(B).reshape(P.shape[0], -1)) for B in rhs]
         D = sp.csr_matrix(D @ P)
         M = None if M is None else sp.csr_matrix(M @ P)
         ridge_w = group_sizes(P)
@@ -133,16 +132,13 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
             Xc = X[:, list(ch)]
             data += float(np.sum(Xc * (G @ Xc)) - 2 * np.sum(B * Xc))
         prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
-        ridge = float(np.sum(X * X)) if ridge_w is None else float(np.einsum("n,nc,nc->", ridge_w, X, X))
-        return data + float(yy.sum()) + lr_abs * ridge + prior
+        return data + float(yy.sum()) + lr_abs * float(np.einsum("n,nc,nc->", ridge_w, X, X)) + prior
 
     for step in range(steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
-            Q = regularized_gram(G, Dw, ls_abs, lr_abs if ridge_w is None else 0.0)
-            if ridge_w is not None:
-                Q[np.diag_indices_from(Q)] += lr_abs * ridge_w
+            Q = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w)
             res = solve(Q, B, passive0=passive[b]) if solve is solve_exact else solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0

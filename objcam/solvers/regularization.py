@@ -160,13 +160,14 @@ def absolute_weights(G: np.ndarray, ls_rel: float, lr_rel: float) -> tuple[float
     return ls_rel * s, lr_rel * s
 
 
-def regularized_gram(G: np.ndarray, D: sp.spmatrix | None, ls: float, lr: float) -> np.ndarray:
-    """``Q = G + ls D^T D + lr I`` (new float64 array; absolute weights)."""
+def regularized_gram(G: np.ndarray, D: sp.spmatrix | None, ls: float, lr: float | np.ndarray) -> np.ndarray:
+    """``Q = G + ls D^T D + diag(lr)`` (new float64 array; absolute weights; lr a scalar or one per variable,
+    e.g. ``lr k`` on a merged basis whose variable g stands for k_g texels)."""
     Q = np.array(G, dtype=np.float64, copy=True)
     if D is not None and ls > 0 and D.shape[0]:
         L = (D.T @ D).tocoo()  # sparse (a few entries per row): add in place, no dense N x N temporary
         L.sum_duplicates()
         Q[L.row, L.col] += ls * L.data
-    if lr > 0:
+    if np.any(np.asarray(lr) > 0):
         Q[np.diag_indices_from(Q)] += lr
     return Q

@@ -41,7 +41,7 @@ from objcam.errors import StageError
 from objcam.image_io import atomic_write_text, write_exr, write_png, write_tonemapped_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
-from objcam.solvers.basis import texel_basis, unknowns
+from objcam.solvers.basis import merge_gram, texel_basis, unknowns
 from objcam.solvers.regularization import DEFAULT_LR_REL
 from objcam.threads import single_blas_thread
 
@@ -301,7 +301,7 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
                     D = solvers.difference_operator(grid, tr.texel_index)
                     Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
                     P = texel_basis(grid, tr.texel_index, _texel_group(params, known=True))
-                    gram_cache[key] = (Q, None) if P is None else (np.asarray(P.T @ (P.T @ Q).T), P)
+                    gram_cache[key] = (Q, None) if P is None else (merge_gram(P, Q), P)
                 Q, P = gram_cache[key]
                 chans = [0, 1, 2] if C == 1 else [c]
                 Yc = y[use][:, chans]
