@@ -222,8 +222,13 @@ def calibrate_intrinsics(obs: BoardObservations, names: list[str], spec: BoardSp
     if square_pixels or len(objp) < 3:
         flags |= cv2.CALIB_FIX_ASPECT_RATIO
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-12)
-    rms, K, dist, _, _ = cv2.calibrateCamera(objp, imgp, (width, height), K0, np.zeros(5), flags=flags,
-                                             criteria=crit)
+    n_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # with OpenCV's threads the result varies run to run (fx in its 11th digit)
+    try:
+        rms, K, dist, _, _ = cv2.calibrateCamera(objp, imgp, (width, height), K0, np.zeros(5), flags=flags,
+                                                 criteria=crit)
+    finally:
+        cv2.setNumThreads(n_threads)
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         return None
     cam = Camera(width=width, height=height, fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]),
