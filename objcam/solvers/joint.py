@@ -265,7 +265,7 @@ def _tmatmul(A: np.ndarray, U: np.ndarray) -> np.ndarray:
     return out
 
 
-def _weighted_gram(As: Sequence[np.ndarray], ws: Sequence[np.ndarray], n: int, fast: bool = False) -> np.ndarray:
+def weighted_gram(As: Sequence[np.ndarray], ws: Sequence[np.ndarray], n: int, fast: bool = False) -> np.ndarray:
     """``sum_p A_p^T diag(w_p) A_p`` (N, N) float64, exactly symmetric; w_p >= 0 (M_p,).
 
     ``fast=False``: float64 products over row blocks of ~64 MB. ``fast=True`` (float32 A only): each block of
@@ -658,7 +658,7 @@ class _Joint:
         if key in cache:
             return cache[key]
         t0 = time.perf_counter()
-        Q = _weighted_gram(self.As, [r[:, c] ** 2 for r in rho], self.n, fast=fast)
+        Q = weighted_gram(self.As, [r[:, c] ** 2 for r in rho], self.n, fast=fast)
         self.t_gram += time.perf_counter() - t0
         self.grams += 1
         cache[key] = Q
@@ -847,7 +847,7 @@ class _SubspaceGN:
         n = J.n
         self.k = k = int(min(k, n))
         if K is None:
-            K = _weighted_gram(J.As, [np.ones(A.shape[0]) for A in J.As], n, fast=fast)
+            K = weighted_gram(J.As, [np.ones(A.shape[0]) for A in J.As], n, fast=fast)
         evals, evecs = np.linalg.eigh(K)
         self.V = np.ascontiguousarray(evecs[:, ::-1][:, :k])
         self.V32 = self.V.astype(np.float32)

@@ -11,7 +11,9 @@ camera share rho; targets with the same ``illumination`` name in capture.toml sh
 ls may be chosen per problem by ``auto_reg`` (objcam.solvers.jointauto); the default is a measured fixed weight
 (bench/results.md, "Joint solve ablation"). The envmap and the
 albedo are then known only up to one scale per colour channel (c rho, x / c fit equally): solve.json says so and
-evaluate compares after the best-fit scale.
+evaluate compares after the best-fit scale. The joint solve's prior (untoned Huber, bench/results.md) gives the
+best albedo; its envmaps are then solved once more at that albedo, held fixed, by the known-albedo solver
+(``final_envmap=known``: tone-weighted edges, ls from the noise), which gives the better envmaps.
 
 Both solve for the envmap on a merged basis (objcam.solvers.basis, ``texel_group``): near the poles a row's
 texels are joined into groups of about one equator texel's solid angle, the objective unchanged over envmaps
@@ -43,7 +45,7 @@ from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
 from objcam.solvers.basis import merge_gram, texel_basis, unknowns
 from objcam.solvers.regularization import DEFAULT_LR_REL
-from objcam.threads import single_blas_thread
+from objcam.threads import parallel_map, single_blas_thread
 
 NAME = "solve"
 DEPS = ("scene", "transport")
@@ -89,6 +91,10 @@ JOINT_LS0_REL = 1e-2
 #: scene (split targets, edge prior) sweeps 8-9 at 1e-4 changed envmap SSIM by 0.0003 and albedo RMSE by 0.0001
 #: against 1e-3 (7 sweeps), for 19% more time (bench/results.md).
 JOINT_TOL = 1e-3
+#: ... and when the final step (final_envmap=known) follows: the joint solve then only provides the albedo that the
+#: TV step starts from. Measured on the dots bench scene: envmap SSIM 0.6669 at 1e-2 (4 sweeps) against 0.6666
+#: at 1e-3 (7 sweeps), the same albedo error (bench/results.md).
+JOINT_TOL_FINAL = 1e-2
 #: Joint solve followed by a bounce refit: the first solve's stopping tolerance (relative decrease per sweep).
 BOUNCE_FIRST_TOL = 3e-2
 #: Joint solve, prior=edges: majorise-minimise x-steps per sweep (each reuses the sweep's Gram matrices). One
@@ -106,6 +112,18 @@ BOUNCE_FIRST_STRIDE = 2
 #: image, so the albedo prior is what separates them; with two or more the data separate them and a smoothness
 #: prior only blurs the albedo's edges (bench/results.md, joint ablation).
 LP_ONE_ILLUMINATION = 1e-2
+
+#: Unknown albedo, final step (_final_step): the TV albedo prior's contrast and the rounds of (albedo step, envmap
+#: step). Measured on the dots bench scene (bench/results.md; joint solve to 1e-3): envmap SSIM 0.638 without the TV
+#: step; contrast 0.004 / 0.006 / 0.008 / 0.012 at two rounds 0.670 / 0.674 / 0.672 / 0.655 (albedo relative RMSE
+#: 0.0029 / 0.0034 / 0.0039 / 0.0052, the joint solve's 0.0031); rounds 1 / 2 / 4 at 0.008: 0.668 / 0.672 / 0.673.
+#: With the joint solve to JOINT_TOL_FINAL and FINAL_EARLY_STEPS: one round 0.667, two 0.675 (~1.2 s more).
+ALBEDO_TV = 0.006
+FINAL_ROUNDS = 2
+#: Reweighting steps of the edge solve in the final step's rounds before the last (their envmaps only feed the next
+#: albedo step). Measured on the dots bench scene, two rounds: 6 / 2 / 1 steps, SSIM 0.6743 / 0.6750 / 0.6731, the
+#: final step 3.3 / 2.7 / 2.6 s.
+FINAL_EARLY_STEPS = 2
 
 SCALE_NOTE = ("unknown albedo: the envmap and the albedo are known only up to one scale per colour channel "
               "(c * albedo and envmap / c fit the photos equally); the regularisers pick c, and evaluate "
@@ -157,8 +175,9 @@ class Params(BaseModel):
     auto_reg: Literal["gcv", "discrepancy", "lcurve", "off"] = Field(
         "off", description="rule choosing ls when ls is None (both albedo cases); off: the measured defaults "
         "(bench/results.md: on path-traced targets every rule picked far too little smoothing)")
-    tol: float = Field(JOINT_TOL, gt=0, description="joint solve: stop when the relative objective decrease per "
-                       "sweep is below tol")
+    tol: float | None = Field(None, gt=0, description="joint solve: stop when the relative objective decrease per "
+                              f"sweep is below tol; None: {JOINT_TOL:g}, or {JOINT_TOL_FINAL:g} when the final step "
+                              "(final_envmap=known) follows")
     max_iter: int = Field(100, ge=1, description="joint solve: most sweeps (paper: most damped steps)")
     alpha: float = Field(0.5, gt=0, description="joint method=paper: damping of the envmap step (Eq. 7)")
     mixed_pixels: Literal["exclude", "fit"] = Field(
@@ -176,6 +195,17 @@ class Params(BaseModel):
                                     "refit: the solve before the refit fits one pixel in stride x stride (with "
                                     "two or more illuminations; every pixel's albedo then follows from its least "
                                     "squares at that solve's envmaps); 1: every pixel")
+    albedo_tv: float = Field(ALBEDO_TV, ge=0, description="unknown albedo, lp = 0, final_envmap=known: weight of the "
+                             "total-variation albedo prior of the final step, as a contrast relative to the median "
+                             "albedo (objcam.solvers.albedo_tv: variations below about it are flattened, a print's "
+                             "edges stay); 0: off")
+    final_rounds: int = Field(FINAL_ROUNDS, ge=1, le=10, description="final_envmap=known with albedo_tv: rounds of "
+                              "(the albedo's TV step at the current envmaps, every envmap at that albedo)")
+    final_envmap: Literal["known", "joint"] = Field(
+        "known", description="unknown albedo, method=exact, prior=edges: 'known' solves every envmap once more at "
+        "the estimated albedo, held fixed, with the known-albedo solver (tone-weighted edge prior, edge_eps and ls "
+        "as for a known albedo; measured on the dots bench scene: envmap SSIM 0.607 -> 0.638); 'joint' keeps the "
+        "joint solve's envmaps")
     adam_lr: float = Field(0.05, gt=0, description="method=adam: learning rate (on log radiance / logit albedo)")
     adam_seconds: float = Field(60.0, gt=0, description="method=adam: time budget (early stopping), seconds")
     adam_max_iter: int = Field(2000, ge=1, description="method=adam: most iterations")
@@ -469,6 +499,15 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         cams.append(dict(key=cam, tr=tr, rows=rows, A=A, Y=Y, rho0=rho0, fixed=fixed, targets=tnames, sigma=sig,
                          n_mixed=n_mixed))
     L = len(comp.illuminations)
+    # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
+    # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
+    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); no refit then (it measured
+    # +12 s there for nothing)
+    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
+    # the albedo's TV step and the envmaps at that albedo follow the joint solve (_final_step)
+    final_step = (params.final_envmap == "known" and params.method == "exact" and params.prior == "edges"
+                  and not unconstrained)
+    tol = params.tol if params.tol is not None else (JOINT_TOL_FINAL if final_step else JOINT_TOL)
     # the joint solve's weights are relative to A' (albedo 1); ls and lr are relative to A = diag(rho0) A', as for
     # a known albedo, so one number means one prior strength in both cases
     num = sum(float(np.sum((c["rho0"] ** 2).mean(axis=1) @ (c["A"].astype(np.float64) ** 2))) for c in cams)
@@ -489,7 +528,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         edge_steps=min(params.edge_steps, JOINT_EDGE_STEPS),
         ls=None if params.auto_reg != "off" else ls_fixed * conv, lr=params.lr * conv,
         lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
-        rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=params.tol, max_iter=params.max_iter,
+        rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=tol, max_iter=params.max_iter,
         alpha=params.alpha, texel_group=_texel_group(params, known=False))
     sigma = [s for c in cams for s in c["sigma"] if s is not None] or None
 
@@ -499,11 +538,8 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                                   c["fixed"]) for c, r in zip(cams, rho)], grid, comp.texel_index, stp, sigma=sigma)
 
     t0 = time.perf_counter()
-    # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
-    # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
-    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); no refit then (it measured
-    # +12 s there for nothing)
-    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
+    if final_step:  # its envmaps replace the joint solve's: no final exact x-step there
+        setup = dataclasses.replace(setup, polish=False)
     refit_next = (params.bounce_refits > 0 and params.method == "exact" and not unconstrained
                   and any(c["tr"].has_bounce_parts for c in cams))
     # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone), so
@@ -546,6 +582,16 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
     if loose and not res.diverged:
         # the last solve stopped early for a refit that found no cell to redo: finish it at the requested tol
         res, auto = solve(res.rho, setup)
+    final_info = None
+    if final_step and not res.diverged:
+        # the albedo's edge-preserving step and each envmap once more by the known-albedo solver (_final_step)
+        t1 = time.perf_counter()
+        # a weight chosen by auto_reg carries over; else the known-albedo rule's (from the noise)
+        ls_rule = float(res.info["ls_rel"]) / conv if auto is not None else None
+        X_final, rho_final, final_info = _final_step(scene, data, cams, res, grid, comp.texel_index, params,
+                                                     ls_rule, tv=setup.lp == 0)
+        final_info["seconds"] = round(time.perf_counter() - t1, 3)
+        res = dataclasses.replace(res, x=X_final, rho=rho_final)
     solve_s = time.perf_counter() - t0
     # a diverging iteration (only the paper's damped steps can: the exact alternation is monotone) is stopped by
     # the solver, which returns the best estimate it saw: that is what is written, marked diverged, and the stage
@@ -586,7 +632,8 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "pixels_albedo_estimated": int(alb_mask.sum()),
                 "solve_seconds": round(solve_s, 4), "iterations": int(res.iterations),
                 "converged": bool(res.converged), "message": res.message,
-                "kkt_residual_max": float(np.max(res.kkt_x)), "kkt_residual_albedo_max": float(np.max(res.kkt_rho)),
+                "kkt_residual_max": final_info["kkt_residual_max"] if final_info else float(np.max(res.kkt_x)),
+                "kkt_residual_albedo_max": float(np.max(res.kkt_rho)),
                 "objective": res.objective.tolist(), "objective_history": [float(v) for v in res.history],
                 "objective_step_history": [float(v) for v in res.step_history],
                 "relative_image_residual": rel_res,
@@ -596,6 +643,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "lp_relative": float(res.info["lp_rel"]), "scale_at_clip": [bool(v) for v in res.scale_at_clip],
                 "auto_reg": auto, "prior": res.info["prior"], "diverged": bool(res.diverged),
                 "envmap_constrained_by_data": not unconstrained, "bounce_refits": refits,
+                "final_envmap": final_info,
                 "objective_monotone": bool(np.all(np.diff(res.step_history) <= 1e-12 * np.abs(
                     np.asarray(res.step_history[:-1])))) if params.method == "exact" else None,
                 "solver": {k: res.info[k] for k in (
@@ -607,6 +655,88 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                           albedo=alb.reshape(*tr.image_shape, 3), albedo_mask=alb_mask.reshape(tr.image_shape))
             per_target[name] = info
     return per_target
+
+
+def _final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: np.ndarray, params: Params,
+                ls_rule: float | None, tv: bool):
+    """After the joint solve: ``final_rounds`` rounds of the albedo's edge-preserving step at the current envmaps
+    (objcam.solvers.albedo_tv, when ``tv`` and ``albedo_tv`` > 0: the exact albedo step with a TV prior; lp = 0
+    only, where the joint solve's albedo is each pixel's least squares) and every envmap at that albedo by the
+    known-albedo solver (:func:`_final_envmaps`). Without the TV step, one round at the joint solve's albedo.
+    Returns (X (N, L, 3), rho (list per camera of (M_p, 3)), info for solve.json)."""
+    from objcam.solvers.albedo_tv import tv_albedo
+
+    tv = tv and params.albedo_tv > 0
+    X, rho = res.x, [np.asarray(r, np.float64) for r in res.rho]
+    warm: list = [None] * len(cams)
+    info: dict = {}
+    rounds = params.final_rounds if tv else 1
+    for k in range(rounds):
+        if tv:
+            for p, c in enumerate(cams):
+                warm[p] = tv_albedo(c["A"], c["Y"], X, rho[p], c["fixed"], c["tr"].pixel_index[c["rows"]],
+                                    c["tr"].image_shape, params.albedo_tv, warm=warm[p])
+                rho[p] = warm[p].rho
+        # a round's envmaps only feed the next albedo step, except the last one's: fewer reweightings before it
+        steps = params.edge_steps if k == rounds - 1 else min(params.edge_steps, FINAL_EARLY_STEPS)
+        X, info = _final_envmaps(scene, data, cams, rho, grid, texel_index, params, ls_rule, steps)
+    info["rounds"] = params.final_rounds if tv else 1
+    info["albedo_tv"] = ({"contrast": params.albedo_tv, "lam": [t.lam for t in warm],
+                          "iterations": [t.iterations for t in warm], "edges": [t.edges for t in warm]}
+                         if tv else None)
+    return X, rho, info
+
+
+def _final_envmaps(scene, data, cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel_index: np.ndarray,
+                   params: Params, ls_rule: float | None = None, steps: int | None = None):
+    """Every illumination's envmap at the albedo ``rhos`` (per camera (M_p, 3)), held fixed: the known-albedo
+    solve (:func:`_solve_edges`' prior: tone-weighted edges, ls = EDGE_LS_PER_SIGMA x sigma, its basis) of
+    ``y_lc = diag(rho_pc) A'_p x_lc`` stacked over the problem's cameras. One Gram matrix per channel serves every
+    illumination. Returns (X (N, L, 3), info for solve.json)."""
+    from objcam import solvers
+    from objcam.solvers.edges import solve_edges
+    from objcam.solvers.joint import weighted_gram
+
+    L, n = cams[0]["Y"].shape[1], texel_index.size
+    grams = [np.zeros((n, n)) for _ in range(3)]
+    rhs = np.zeros((n, L, 3))
+    yy = np.zeros((L, 3))
+    for c, rho in zip(cams, rhos):
+        rho = np.asarray(rho, np.float64)  # (M, 3)
+        for ch in range(3):
+            grams[ch] += weighted_gram([c["A"]], [rho[:, ch] ** 2], n, fast=True)
+        W = (rho[:, None, :] * c["Y"]).reshape(rho.shape[0], -1)  # (M, L * 3): rho_c y_lc
+        rhs += solvers.rhs(c["A"], W, fast=True).reshape(n, L, 3)
+        yy += np.einsum("mlc,mlc->lc", c["Y"], c["Y"])
+    with single_blas_thread():
+        if ls_rule is not None:
+            ls, source = ls_rule, f"auto_reg {params.auto_reg}"
+        elif params.ls is not None:
+            ls, source = params.ls, "param"
+        else:  # the known-albedo rule, the median over the problem's targets
+            got = [_noise_ls(scene.target(t), data[t][1], data[t][2], params, c["tr"].downsample, linear=True)
+                   for c in cams for t in c["targets"]]
+            ls, source = float(np.median([g[0] for g in got])), f"median over the targets of {got[0][1]}"
+        ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, ls, params.lr)
+        D = solvers.difference_operator(grid, texel_index)
+        eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
+        P = texel_basis(grid, texel_index, _texel_group(params, known=True))
+        X = np.zeros((n, L, 3))
+        kkt = np.zeros((L, 3))
+        hist = []
+        # the illuminations' solves are independent: a thread per core (LAPACK releases the GIL)
+        def one(l: int):
+            return solve_edges(grams, [rhs[:, l, ch:ch + 1] for ch in range(3)], [[0], [1], [2]], yy[l], D, ls_abs,
+                               lr_abs, steps=params.edge_steps if steps is None else steps, eps_rel=eps,
+                               tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=P)
+
+        for l, r in enumerate(parallel_map(one, range(L))):
+            X[:, l, :] = r.x
+            kkt[l] = [np.max(q.kkt_residual) for q in r.results]
+            hist.append(r.objective_history)
+    return X, {"ls_relative": ls, "ls_source": source, "prior": "edges", "edge_eps": eps, "tone": params.edge_tone,
+               "texel_group": _texel_group(params, known=True), "kkt_residual_max": float(kkt.max()),
+               "objective_history": hist}
 
 
 def _subsample(cams: list[dict], stride: int) -> list[np.ndarray]:
