@@ -112,6 +112,8 @@ def test_the_final_step_beats_the_joint_solves_own_envmaps_and_albedo(capture, t
         assert fin["rounds"] == 2 and fin["albedo_tv"]["contrast"] == 0.006 and min(fin["albedo_tv"]["edges"]) > 1000
         assert json.loads((runs["joint_solve"] / t / "solve.json").read_text())["final_envmap"] is None
         assert json.loads((runs["no_tv_solve"] / t / "solve.json").read_text())["final_envmap"]["albedo_tv"] is None
+    summary = json.loads((capture / "objcam" / "solve" / "stage.json").read_text())["summary"]
+    assert "final step: 2 round(s) of the albedo's TV step" in summary
 
 
 def _copy_capture(src: Path, dst: Path) -> Path:
