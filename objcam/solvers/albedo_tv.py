@@ -17,6 +17,14 @@ their edges) -- the data term halved, i.e. the joint objective with a TV weight 
 from a contrast: ``lam = contrast x median(rho) x median(w)``, so variations below about that fraction of the
 typical albedo, over regions a few pixels across, are flattened while a print's edges (tens of percent) stay.
 Pixels not estimated (held at a known albedo) are left as they are.
+
+TV's known bias is a loss of contrast (a region's level moves by about lam x perimeter / (w x area): 2% of a dark
+3-pixel dot's albedo here). So TV only picks the regions: neighbouring pixels whose TV albedos differ by less than
+the contrast (x the median albedo) are joined, and each region gets the least-squares albedo of its pixels'
+data, ``sum w f / sum w`` -- the data term's minimiser among albedos constant on those regions (a refitting or
+"debiasing" of the TV estimate). Measured on the bench's dots scene: envmap SSIM 0.675 -> 0.710, the albedo's
+relative error 0.0034 -> 0.0021; joining only regions flat to 0.1% / 0.2% / 0.3% / 0.6% / 1.2% of the albedo gave
+0.667 / 0.699 / 0.708 / 0.710 / 0.709 (fragments that keep the streaks apart put them back).
 """
 
 from __future__ import annotations
@@ -40,6 +48,7 @@ class TVAlbedo:
     edges: int
     lam: float
     q: tuple[np.ndarray, np.ndarray]
+    regions: int | None = None  # regions refitted (None: no refit)
 
 
 class ImageGraph:
@@ -56,6 +65,27 @@ class ImageGraph:
         self.mh = (on[:, :-1] & on[:, 1:])[..., None]
         self.mv = (on[:-1, :] & on[1:, :])[..., None]
         self.edges = int(self.mh.sum() + self.mv.sum())
+
+    def regions(self, u: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+        """Connected regions of rows joined by graph edges across which ``u`` (M, C) changes by less than ``tol``
+        (max over channels): (labels (M,), count). Rows off the graph are regions of their own."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        m = self.flat.size
+        pos = np.full(self.shape[0] * self.shape[1], -1, np.int64)
+        pos[self.flat] = np.arange(m)
+        P = pos.reshape(self.shape)
+        U = self.to_grid(u)
+        ii, jj = [], []
+        for a, b, ua, ub, on in ((P[:, :-1], P[:, 1:], U[:, :-1], U[:, 1:], self.mh[..., 0]),
+                                 (P[:-1, :], P[1:, :], U[:-1, :], U[1:, :], self.mv[..., 0])):
+            same = on & (np.abs(ua - ub).max(axis=2) < tol)
+            ii.append(a[same])
+            jj.append(b[same])
+        ii, jj = np.concatenate(ii), np.concatenate(jj)
+        n, labels = connected_components(coo_matrix((np.ones(ii.size), (ii, jj)), shape=(m, m)), directed=False)
+        return labels, int(n)
 
     def to_grid(self, v: np.ndarray) -> np.ndarray:
         g = np.zeros((self.shape[0] * self.shape[1], v.shape[1]))
@@ -124,13 +154,14 @@ def rof_graph(f: np.ndarray, w: np.ndarray, graph: ImageGraph, lam: float, free:
 
 def tv_albedo(A: np.ndarray, Y: np.ndarray, X: np.ndarray, rho_prev: np.ndarray, fixed: np.ndarray,
               pixel_index: np.ndarray, image_shape: tuple[int, int], contrast: float,
-              warm: TVAlbedo | None = None, rho_min: float = DEFAULT_RHO_MIN) -> TVAlbedo:
+              warm: TVAlbedo | None = None, rho_min: float = DEFAULT_RHO_MIN, refit: bool = True) -> TVAlbedo:
     """The albedo step with the TV prior (module docstring) for one camera at the envmaps X.
 
     A: (M, N) A' (albedo 1); Y: (M, L, C) photos; X: (N, L, C); rho_prev: (M, C) the current albedo (pixels
     ``fixed`` (M,) bool stay at it, as do never-lit pixels' least squares); pixel_index (M,) into image_shape.
     contrast: the prior's weight as a fraction of the median albedo (lam above); warm: a previous result for the
-    same camera (its rho and dual start the iteration)."""
+    same camera (its rho and dual start the iteration). refit: TV picks the regions, least squares their values
+    (module docstring)."""
     S = _matmul(A, X.reshape(X.shape[0], -1)).reshape(Y.shape)
     C = Y.shape[2]
     w = np.empty(rho_prev.shape)
@@ -141,8 +172,26 @@ def tv_albedo(A: np.ndarray, Y: np.ndarray, X: np.ndarray, rho_prev: np.ndarray,
     free = ~np.asarray(fixed, bool)
     f[~free] = rho_prev[~free]
     graph = ImageGraph(pixel_index, image_shape, free)
-    scale = float(np.median(w[free])) * float(np.median(np.clip(f[free], rho_min, 1.0))) if free.any() else 0.0
-    lam = contrast * scale
+    level = float(np.median(np.clip(f[free], rho_min, 1.0))) if free.any() else 0.0
+    lam = contrast * float(np.median(w[free])) * level if free.any() else 0.0
     u, q, it, change = rof_graph(f, w, graph, lam, free, lo=rho_min, u0=None if warm is None else warm.rho,
                                  q0=None if warm is None else warm.q)
-    return TVAlbedo(u, it, change, graph.edges, lam, q)
+    regions = None
+    if refit and lam > 0:
+        labels, regions = graph.regions(u, contrast * level)
+        u = refit_regions(u, f, w, labels, regions, free, rho_min)
+    return TVAlbedo(u, it, change, graph.edges, lam, q, regions)
+
+
+def refit_regions(u: np.ndarray, f: np.ndarray, w: np.ndarray, labels: np.ndarray, n: int, free: np.ndarray,
+                  rho_min: float = DEFAULT_RHO_MIN) -> np.ndarray:
+    """Each region's albedo set to its least squares ``sum w f / sum w`` (per channel, over its ``free`` pixels,
+    clipped to [rho_min, 1]): the data term's minimiser among albedos constant on the regions. ``labels`` (M,) in
+    [0, n); pixels not free keep ``u``."""
+    out = np.array(u, np.float64)
+    for c in range(u.shape[1]):
+        num = np.bincount(labels, weights=np.where(free, w[:, c] * f[:, c], 0.0), minlength=n)
+        den = np.bincount(labels, weights=np.where(free, w[:, c], 0.0), minlength=n)
+        val = np.clip(num / np.where(den > 0, den, 1.0), rho_min, 1.0)
+        out[:, c] = np.where(free & (den[labels] > 0), val[labels], out[:, c])
+    return out

@@ -115,10 +115,12 @@ BOUNCE_FIRST_STRIDE = 2
 LP_ONE_ILLUMINATION = 1e-2
 
 #: Unknown albedo, final step (_final_step): the TV albedo prior's contrast and the rounds of (albedo step, envmap
-#: step). Measured on the dots bench scene (bench/results.md; joint solve to 1e-3): envmap SSIM 0.638 without the TV
-#: step; contrast 0.004 / 0.006 / 0.008 / 0.012 at two rounds 0.670 / 0.674 / 0.672 / 0.655 (albedo relative RMSE
-#: 0.0029 / 0.0034 / 0.0039 / 0.0052, the joint solve's 0.0031); rounds 1 / 2 / 4 at 0.008: 0.668 / 0.672 / 0.673.
-#: With the joint solve to JOINT_TOL_FINAL and FINAL_EARLY_STEPS: one round 0.667, two 0.675 (~1.2 s more).
+#: step). Measured on the dots bench scene (bench/results.md; joint solve to 1e-3, TV without the regions' refit):
+#: envmap SSIM 0.638 without the TV step; contrast 0.004 / 0.006 / 0.008 / 0.012 at two rounds 0.670 / 0.674 /
+#: 0.672 / 0.655 (albedo relative RMSE 0.0029 / 0.0034 / 0.0039 / 0.0052, the joint solve's 0.0031); rounds 1 / 2 /
+#: 4 at 0.008: 0.668 / 0.672 / 0.673. With the joint solve to JOINT_TOL_FINAL and FINAL_EARLY_STEPS: one round
+#: 0.667, two 0.675 (~1.2 s more); with the regions' least-squares refit (objcam.solvers.albedo_tv) 0.710, albedo
+#: 0.0021.
 ALBEDO_TV = 0.006
 FINAL_ROUNDS = 2
 #: Reweighting steps of the edge solve in the final step's rounds before the last (their envmaps only feed the next
@@ -206,7 +208,7 @@ class Params(BaseModel):
         "known", description="unknown albedo, method=exact, prior=edges: 'known' follows the joint solve with "
         "final_rounds rounds of the albedo's TV step (albedo_tv) and every envmap at that albedo, held fixed, by "
         "the known-albedo solver (tone-weighted edge prior, edge_eps and ls as for a known albedo; measured on the "
-        "dots bench scene: envmap SSIM 0.607 -> 0.675, 0.638 without the TV step); 'joint' keeps the joint "
+        "dots bench scene: envmap SSIM 0.607 -> 0.710, 0.638 without the TV step); 'joint' keeps the joint "
         "solve's albedo and envmaps")
     adam_lr: float = Field(0.05, gt=0, description="method=adam: learning rate (on log radiance / logit albedo)")
     adam_seconds: float = Field(60.0, gt=0, description="method=adam: time budget (early stopping), seconds")
@@ -684,7 +686,8 @@ def _final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: 
         X, info = _final_envmaps(scene, data, cams, rho, grid, texel_index, params, ls_rule, steps)
     info["rounds"] = params.final_rounds if tv else 1
     info["albedo_tv"] = ({"contrast": params.albedo_tv, "lam": [t.lam for t in warm],
-                          "iterations": [t.iterations for t in warm], "edges": [t.edges for t in warm]}
+                          "iterations": [t.iterations for t in warm], "edges": [t.edges for t in warm],
+                          "regions": [t.regions for t in warm]}
                          if tv else None)
     return X, rho, info
 
