@@ -1,4 +1,5 @@
-"""Edge-preserving albedo step: the exact albedo step of the joint objective with a total-variation albedo prior.
+"""Edge-preserving albedo step: a total-variation albedo prior picks piecewise-constant regions, least squares
+their values.
 
 With the envmaps X held, each pixel's albedo enters the data term through its own quadratic (per channel c)
 
@@ -7,16 +8,17 @@ With the envmaps X held, each pixel's albedo enters the data term through its ow
 ``f_pc = sum_l y_plc s_plc / w_pc`` its least-squares albedo. A support is printed, painted or woven: its albedo is
 piecewise constant, while whatever the envmap estimate gets wrong (a shadow too faint, a penumbra misplaced) a free
 per-pixel albedo absorbs as low-contrast streaks, and the envmaps solved at that albedo then keep the error (on
-the bench's dots scene the albedo's 0.4% error cost the envmap 0.09 SSIM against the true albedo). The step
+the bench's dots scene the albedo's 0.4% error cost the envmap 0.09 SSIM against the true albedo). The step first
 minimises
 
     sum_pc w_pc (u_pc - f_pc)^2 / 2 + lam sum_(i,j) ||u_i - u_j||_2,   rho_min <= u <= 1,
 
 over the 4-neighbouring pairs (i, j) of estimated pixels on the image grid (vectorial TV: the channels share
-their edges) -- the data term halved, i.e. the joint objective with a TV weight of 2 lam -- by the primal-dual algorithm of Chambolle and Pock (2011, Alg. 1) on the graph. ``lam`` is set
-from a contrast: ``lam = contrast x median(rho) x median(w)``, so variations below about that fraction of the
-typical albedo, over regions a few pixels across, are flattened while a print's edges (tens of percent) stay.
-Pixels not estimated (held at a known albedo) are left as they are.
+their edges; the data term halved, i.e. the albedo step of the joint objective with a TV weight of 2 lam), by
+the primal-dual algorithm of Chambolle and Pock (2011, Alg. 1). ``lam`` is set from a contrast:
+``lam = contrast x median(rho) x median(w)``, so variations below about that fraction of the typical albedo,
+over regions a few pixels across, are flattened while a print's edges (tens of percent) stay. Pixels not
+estimated (held at a known albedo) are left as they are.
 
 TV's known bias is a loss of contrast (a region's level moves by about lam x perimeter / (w x area): 2% of a dark
 3-pixel dot's albedo here). So TV only picks the regions: neighbouring pixels whose TV albedos differ by less than
