@@ -394,14 +394,14 @@ def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
         Y = rho[:, None, :] * np.einsum("mn,nlc->mlc", A.astype(np.float64), X_true)
         cams.append(dict(A=A, Y=Y))
         rhos.append(rho)
-    params = Params(ls=1e-3)
-    X, info = _final_envmaps(None, None, cams, rhos, grid, texel_index, params)
+    params = Params()
+    X, info = _final_envmaps(cams, rhos, grid, texel_index, params, ls=1e-3)
     assert X.shape == (n, L, 3) and info["ls_relative"] == 1e-3 and info["kkt_residual_max"] < 1e-8
     # reference: the stacked system in float64, solved by the known-albedo edge solver
     grams = [sum((r[:, c, None] * cam["A"]).T @ (r[:, c, None] * cam["A"]) for cam, r in zip(cams, rhos))
              for c in range(3)]
     D = solvers.difference_operator(grid, texel_index)
-    ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, params.ls, params.lr)
+    ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, 1e-3, params.lr)
     P = texel_basis(grid, texel_index, 1.0)
     for l in range(L):
         rhs = [sum((r[:, c, None] * cam["A"]).T @ cam["Y"][:, l, c:c + 1] for cam, r in zip(cams, rhos))
@@ -411,5 +411,5 @@ def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
                           eps_rel=EDGE_EPS_KNOWN, tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=P)
         np.testing.assert_allclose(X[:, l], ref.x, rtol=1e-4, atol=1e-6)
     # a faint prior on the texels themselves: the noise-free data give back the truth
-    X0, _ = _final_envmaps(None, None, cams, rhos, grid, texel_index, Params(ls=1e-9, lr=1e-12, texel_group=0))
+    X0, _ = _final_envmaps(cams, rhos, grid, texel_index, Params(lr=1e-12, texel_group=0), ls=1e-9)
     np.testing.assert_allclose(X0, X_true, rtol=1e-3)

@@ -671,6 +671,14 @@ def _final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: 
     from objcam.solvers.albedo_tv import tv_albedo
 
     tv = tv and params.albedo_tv > 0
+    if ls_rule is not None:
+        ls, source = ls_rule, f"auto_reg {params.auto_reg}"
+    elif params.ls is not None:
+        ls, source = params.ls, "param"
+    else:  # the known-albedo rule, the median over the problem's targets
+        got = [_noise_ls(scene.target(t), data[t][1], data[t][2], params, c["tr"].downsample, linear=True)
+               for c in cams for t in c["targets"]]
+        ls, source = float(np.median([g[0] for g in got])), f"median over the targets of {got[0][1]}"
     X, rho = res.x, [np.asarray(r, np.float64) for r in res.rho]
     warm: list = [None] * len(cams)
     info: dict = {}
@@ -683,8 +691,9 @@ def _final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: 
                 rho[p] = warm[p].rho
         # a round's envmaps only feed the next albedo step, except the last one's: fewer reweightings before it
         steps = params.edge_steps if k == rounds - 1 else min(params.edge_steps, FINAL_EARLY_STEPS)
-        X, info = _final_envmaps(scene, data, cams, rho, grid, texel_index, params, ls_rule, steps)
-    info["rounds"] = params.final_rounds if tv else 1
+        X, info = _final_envmaps(cams, rho, grid, texel_index, params, ls, steps)
+    info["ls_source"] = source
+    info["rounds"] = rounds
     info["albedo_tv"] = ({"contrast": params.albedo_tv, "lam": [t.lam for t in warm],
                           "iterations": [t.iterations for t in warm], "edges": [t.edges for t in warm],
                           "regions": [t.regions for t in warm]}
@@ -692,12 +701,12 @@ def _final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: 
     return X, rho, info
 
 
-def _final_envmaps(scene, data, cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel_index: np.ndarray,
-                   params: Params, ls_rule: float | None = None, steps: int | None = None):
+def _final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel_index: np.ndarray,
+                   params: Params, ls: float, steps: int | None = None):
     """Every illumination's envmap at the albedo ``rhos`` (per camera (M_p, 3)), held fixed: the known-albedo
-    solve (:func:`_solve_edges`' prior: tone-weighted edges, ls = EDGE_LS_PER_SIGMA x sigma, its basis) of
-    ``y_lc = diag(rho_pc) A'_p x_lc`` stacked over the problem's cameras. One Gram matrix per channel serves every
-    illumination. Returns (X (N, L, 3), info for solve.json)."""
+    solve (:func:`_solve_edges`' prior: tone-weighted edges at the relative weight ``ls``, its basis; ``steps``
+    reweightings, None: params.edge_steps) of ``y_lc = diag(rho_pc) A'_p x_lc`` stacked over the problem's
+    cameras. One Gram matrix per channel serves every illumination. Returns (X (N, L, 3), info for solve.json)."""
     from objcam import solvers
     from objcam.solvers.edges import solve_edges
     from objcam.solvers.joint import weighted_gram
@@ -714,14 +723,6 @@ def _final_envmaps(scene, data, cams: list[dict], rhos: list[np.ndarray], grid: 
         rhs += solvers.rhs(c["A"], W, fast=True).reshape(n, L, 3)
         yy += np.einsum("mlc,mlc->lc", c["Y"], c["Y"])
     with single_blas_thread():
-        if ls_rule is not None:
-            ls, source = ls_rule, f"auto_reg {params.auto_reg}"
-        elif params.ls is not None:
-            ls, source = params.ls, "param"
-        else:  # the known-albedo rule, the median over the problem's targets
-            got = [_noise_ls(scene.target(t), data[t][1], data[t][2], params, c["tr"].downsample, linear=True)
-                   for c in cams for t in c["targets"]]
-            ls, source = float(np.median([g[0] for g in got])), f"median over the targets of {got[0][1]}"
         ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, ls, params.lr)
         D = solvers.difference_operator(grid, texel_index)
         eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
@@ -729,8 +730,8 @@ def _final_envmaps(scene, data, cams: list[dict], rhos: list[np.ndarray], grid: 
         X = np.zeros((n, L, 3))
         kkt = np.zeros((L, 3))
         hist = []
-        # the illuminations' solves are independent: a thread per core (LAPACK releases the GIL)
-        def one(l: int):
+
+        def one(l: int):  # the illuminations' solves are independent: a thread per core (LAPACK releases the GIL)
             return solve_edges(grams, [rhs[:, l, ch:ch + 1] for ch in range(3)], [[0], [1], [2]], yy[l], D, ls_abs,
                                lr_abs, steps=params.edge_steps if steps is None else steps, eps_rel=eps,
                                tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=P)
@@ -739,7 +740,7 @@ def _final_envmaps(scene, data, cams: list[dict], rhos: list[np.ndarray], grid: 
             X[:, l, :] = r.x
             kkt[l] = [np.max(q.kkt_residual) for q in r.results]
             hist.append(r.objective_history)
-    return X, {"ls_relative": ls, "ls_source": source, "prior": "edges", "edge_eps": eps, "tone": params.edge_tone,
+    return X, {"ls_relative": ls, "prior": "edges", "edge_eps": eps, "tone": params.edge_tone,
                "texel_group": _texel_group(params, known=True), "kkt_residual_max": float(kkt.max()),
                "objective_history": hist}
 
