@@ -64,6 +64,7 @@ class ImageGraph:
         on = np.zeros(h * w, bool)
         on[self.flat[free]] = True
         on = on.reshape(h, w)
+        self.on = on[..., None]  # (H, W, 1): estimated pixels
         self.mh = (on[:, :-1] & on[:, 1:])[..., None]
         self.mv = (on[:-1, :] & on[1:, :])[..., None]
         self.edges = int(self.mh.sum() + self.mv.sum())
@@ -132,7 +133,6 @@ def rof_graph(f: np.ndarray, w: np.ndarray, graph: ImageGraph, lam: float, free:
     wf = np.where(free[:, None], w, 0.0)
     tau = 1.0 / max(float(np.median(wf[free])) if free.any() else 1.0, 1e-30)
     sigma = 1.0 / (8.0 * tau)
-    on = graph.to_grid(free[:, None].astype(np.float64)) > 0  # (H, W, 1)
     F = graph.to_grid(f)
     W = graph.to_grid(wf)
     U = graph.to_grid(f if u0 is None else np.asarray(u0, np.float64))
@@ -146,7 +146,7 @@ def rof_graph(f: np.ndarray, w: np.ndarray, graph: ImageGraph, lam: float, free:
         qv /= np.maximum(1.0, np.sqrt(np.einsum("ijc,ijc->ij", qv, qv))[..., None] / lam)
         U_old = U
         U = (U - tau * graph.grad_t(qh, qv) + tau * W * F) / (1.0 + tau * W)
-        U = np.where(on, np.clip(U, lo, hi), F)
+        U = np.where(graph.on, np.clip(U, lo, hi), F)
         Ubar = 2.0 * U - U_old
         change = float(np.linalg.norm(U - U_old) / max(np.linalg.norm(U), 1e-30))
         if change < tol:

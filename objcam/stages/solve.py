@@ -712,13 +712,11 @@ def _final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texe
     from objcam.solvers.joint import weighted_gram
 
     L, n = cams[0]["Y"].shape[1], texel_index.size
-    grams = [np.zeros((n, n)) for _ in range(3)]
+    rhos = [np.asarray(r, np.float64) for r in rhos]  # (M_p, 3)
+    grams = [weighted_gram([c["A"] for c in cams], [r[:, ch] ** 2 for r in rhos], n, fast=True) for ch in range(3)]
     rhs = np.zeros((n, L, 3))
     yy = np.zeros((L, 3))
     for c, rho in zip(cams, rhos):
-        rho = np.asarray(rho, np.float64)  # (M, 3)
-        for ch in range(3):
-            grams[ch] += weighted_gram([c["A"]], [rho[:, ch] ** 2], n, fast=True)
         W = (rho[:, None, :] * c["Y"]).reshape(rho.shape[0], -1)  # (M, L * 3): rho_c y_lc
         rhs += solvers.rhs(c["A"], W, fast=True).reshape(n, L, 3)
         yy += np.einsum("mlc,mlc->lc", c["Y"], c["Y"])
