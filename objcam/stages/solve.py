@@ -3,7 +3,9 @@ leaves it unknown, the albedo).
 
 Known albedo (no kept pixel has ``unknown_albedo``): min_x ||A x - y||^2 + ls ||D x||^2 + lr ||x||^2, x >= 0,
 per colour channel, solved exactly in the Gram form. One Gram matrix serves every channel (grey A) and every
-target that shares A and its valid pixels.
+target that shares A and its valid pixels. The default edge prior (objcam.solvers.edges) with a grey A takes the
+envmap's luminance from that solve and its chroma from a second one at ``chroma_ls_factor`` x ls
+(objcam.solvers.chroma), run on a second thread.
 
 Unknown albedo: the joint solve (objcam.solvers.joint) of ``y_l = diag(rho_p) A'_p x_l`` for the albedo rho_p of
 every camera p and the envmap x_l of every illumination l, grouped as objcam.solvers.assemble says (targets of one
@@ -79,6 +81,11 @@ EDGE_LS_PER_SIGMA = 1.5
 EDGE_TONE = 0.3
 EDGE_TONE_FLOOR = 0.05
 EDGE_EPS_KNOWN = 0.001
+#: Known albedo, prior=edges, grey A: the chroma's smoothness relative to the luminance's (objcam.solvers.chroma).
+#: Measured on the bench (bench/results.md, session 11) at ls 1.5 sigma, SSIM forest / courtyard / city / sunrise:
+#: one solve 0.775 / 0.785 / 0.828 / 0.736; chroma at 4x 0.774 / 0.841 / 0.831 / 0.732, 10x 0.772 / 0.856 / 0.831 /
+#: 0.723, 20x 0.771 / 0.854 / 0.831 / 0.729.
+CHROMA_LS_FACTOR = 10.0
 #: Joint solve: the Huber threshold (its edge prior is untoned; 0.005 measured on the bench scenes).
 EDGE_EPS_JOINT = 0.005
 LS_RANGE = (3e-4, 0.3)
@@ -160,6 +167,12 @@ class Params(BaseModel):
                              "rather than linear units (objcam.solvers.edges); 0: plain Huber")
     edge_tone_floor: float = Field(EDGE_TONE_FLOOR, gt=0, description="prior=edges: the tone weights' floor, "
                                    "relative to the mean radiance")
+    chroma_ls_factor: float = Field(CHROMA_LS_FACTOR, ge=0, description="prior=edges, known albedo, grey A (one "
+                                    "albedo for all channels): the envmap's chroma (each channel over the channel "
+                                    "mean) comes from a second edge solve at chroma_ls_factor x ls, its luminance "
+                                    "(the channel mean) from the solve at ls (objcam.solvers.chroma: colour varies "
+                                    "more slowly than brightness, and a dark channel otherwise clips to 0 in "
+                                    "patches); 0: one solve for all channels")
     ls_noise_factor: float | None = Field(None, gt=0, description="ls from the relative noise sigma when ls is "
                                           "None (the target's noise_sigma, else estimated from the image): known "
                                           "albedo with prior=edges, ls = factor x sigma (None: "
@@ -411,6 +424,7 @@ def _noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: Params,
 def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float, params: Params):
     """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info."""
     from objcam import solvers
+    from objcam.solvers.chroma import luminance_with_chroma
     from objcam.solvers.edges import solve_edges
 
     grams_all = tr.gram()
@@ -425,24 +439,47 @@ def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, l
         grams.append(G)
         rhs.append(solvers.rhs(tr.A[c] if use.all() else tr.A[c][use], Y[:, ch], fast=True))
         chans.append(ch)
-    ls_abs, lr_abs = solvers.absolute_weights(grams[0] if C == 1 else sum(grams) / C, ls, lr)
+    G_ref = grams[0] if C == 1 else sum(grams) / C
+    ls_abs, lr_abs = solvers.absolute_weights(G_ref, ls, lr)
     D = solvers.difference_operator(grid, tr.texel_index)
     eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
-    res = solve_edges(grams, rhs, chans, np.einsum("ij,ij->j", Y, Y), D, ls_abs, lr_abs, steps=params.edge_steps,
-                      eps_rel=eps, tone=params.edge_tone, tone_floor=params.edge_tone_floor,
-                      basis=texel_basis(grid, tr.texel_index, _texel_group(params, known=True)))
+    yy = np.einsum("ij,ij->j", Y, Y)
+    basis = texel_basis(grid, tr.texel_index, _texel_group(params, known=True))
+    # the chroma solve (objcam.solvers.chroma) needs one A for every channel: the luminance of X is then A's own
+    split = params.chroma_ls_factor > 0 and C == 1
+    weights = [ls_abs]
+    if split:
+        weights.append(solvers.absolute_weights(G_ref, ls * params.chroma_ls_factor, lr)[0])
+
+    def one(w: float):
+        return solve_edges(grams, rhs, chans, yy, D, w, lr_abs, steps=params.edge_steps, eps_rel=eps,
+                           tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=basis)
+
+    runs = parallel_map(one, weights)  # independent solves: a thread each (the caller holds one BLAS thread)
+    res = runs[0]
     kkt = np.zeros(3)
     iters = 0
-    for r, ch in zip(res.results, chans):
-        kkt[ch] = r.kkt_residual
-        iters += r.iterations
+    for run in runs:
+        for r, ch in zip(run.results, chans):
+            kkt[ch] = np.maximum(kkt[ch], r.kkt_residual)
+            iters += r.iterations
     obj = np.full(3, res.objective_history[-1] / 3)
     hist = res.objective_history
     info = {"steps": res.steps, "objective_history": hist, "edge_scale": res.edge_scale, "edge_eps": eps,
             "tone": res.tone, "tone_floor": params.edge_tone_floor if res.tone > 0 else None,
             "edges_above_threshold": round(res.kept_edges, 4),
             "monotone": bool(all(b <= a * (1 + 1e-9) for a, b in zip(hist, hist[1:])))}
-    return res.x, kkt, obj, iters, info
+    X = res.x
+    if split:
+        X = luminance_with_chroma(res.x, runs[1].x)
+        hc = runs[1].objective_history
+        info["chroma"] = {"ls_factor": params.chroma_ls_factor, "steps": runs[1].steps, "objective_history": hc,
+                          "monotone": bool(all(b <= a * (1 + 1e-9) for a, b in zip(hc, hc[1:]))),
+                          "black_texels_per_channel_before": [int(v) for v in (res.x <= 0).sum(axis=0)],
+                          "black_texels_per_channel": [int(v) for v in (X <= 0).sum(axis=0)]}
+    elif params.chroma_ls_factor > 0:
+        info["chroma"] = {"ls_factor": params.chroma_ls_factor, "skipped": "A differs per channel"}
+    return X, kkt, obj, iters, info
 
 
 def _sigma(target, y: np.ndarray, rule: str) -> float | None:
