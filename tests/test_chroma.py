@@ -12,6 +12,8 @@ from objcam.solvers.chroma import chroma_ratios, luminance_with_chroma
 from objcam.solvers.edges import solve_edges
 from objcam.solvers.regularization import absolute_weights, difference_operator, gram
 
+from tests.toy_scenes import cone_shadow_transport
+
 
 def test_ratios_and_composition_identities():
     rng = np.random.default_rng(0)
@@ -40,12 +42,7 @@ def _coloured_problem(seed=0):
     X = np.where((r < 2)[:, None], [0.5, 0.7, 1.0], [0.06, 0.04, 0.0012])
     X[(r == 1) & (c == 5)] = [12.0, 10.0, 7.0]
     rng = np.random.default_rng(seed)
-    dirs = grid.directions().reshape(-1, 3)[texels]
-    axes = rng.normal(size=(200, 3))
-    axes[:, 2] = np.abs(axes[:, 2]) + 0.3
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    vis = (axes @ dirs.T) < rng.uniform(0.6, 0.95, size=(200, 1))
-    A = vis * np.maximum(dirs[:, 2], 0)[None] * grid.solid_angles().ravel()[texels][None] / np.pi
+    A = cone_shadow_transport(grid, texels, 200, rng)
     Y0 = A @ X
     Y = Y0 + 0.03 * np.median(Y0) * rng.standard_normal(Y0.shape)
     return grid, texels, A, X, Y

@@ -10,6 +10,8 @@ from objcam.solvers import kkt_residual
 from objcam.solvers.edges import huber, solve_edges
 from objcam.solvers.regularization import absolute_weights, difference_operator, gram, regularized_gram
 
+from tests.toy_scenes import cone_shadow_transport
+
 
 def _problem(noise=0.002, seed=0):
     grid = EnvGrid(8)
@@ -19,14 +21,8 @@ def _problem(noise=0.002, seed=0):
     x = np.where(r < 2, 1.0, 0.2)  # bright sky over a dark band
     x[(r == 1) & (c == 5)] = 8.0  # a sun
     rng = np.random.default_rng(seed)
-    dirs = grid.directions().reshape(-1, 3)[texels]
-    # pixels: points on a plane under random occluder cones (shadow-like 0/1 visibility times cosine)
-    m = 600
-    axes = rng.normal(size=(m, 3))
-    axes[:, 2] = np.abs(axes[:, 2]) + 0.3
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    vis = (axes @ dirs.T) < rng.uniform(0.6, 0.95, size=(m, 1))
-    A = vis * np.maximum(dirs[:, 2], 0)[None] * grid.solid_angles().ravel()[texels][None] / np.pi
+    m = 600  # pixels: points on a plane under random occluder cones
+    A = cone_shadow_transport(grid, texels, m, rng)
     y0 = A @ x
     y = y0 * (1 + noise * rng.standard_normal(m))
     return grid, texels, A, x, y
@@ -86,13 +82,7 @@ def _dim_sky_problem(seed=0, noise=0.01):
     r, c = np.divmod(texels, w)
     x = np.where(r < h // 4, 0.05, 1.0)
     x[(r == h // 2 - 2) & (c == 9)] = 60.0
-    rng = np.random.default_rng(seed)
-    dirs = grid.directions().reshape(-1, 3)[texels]
-    axes = rng.normal(size=(1500, 3))
-    axes[:, 2] = np.abs(axes[:, 2]) + 0.3
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    vis = (axes @ dirs.T) < rng.uniform(0.6, 0.95, size=(1500, 1))
-    A = vis * np.maximum(dirs[:, 2], 0)[None] * grid.solid_angles().ravel()[texels][None] / np.pi
+    A = cone_shadow_transport(grid, texels, 1500, np.random.default_rng(seed))
     y = (A @ x) * (1 + noise * np.random.default_rng(seed + 10).standard_normal(A.shape[0]))
     return grid, texels, A, x, y
 

@@ -1,4 +1,5 @@
-"""Small renderer-free scenes shared by the solver tests: ground-plane pixels under occluding spheres."""
+"""Small renderer-free scenes shared by the solver tests: ground-plane pixels under occluding spheres, or under
+random occluder cones."""
 
 from __future__ import annotations
 
@@ -38,3 +39,14 @@ def sky_with_sun(grid: EnvGrid, keep: np.ndarray, sun: float) -> np.ndarray:
     mean = truth.reshape(-1, 3)[keep].mean()
     truth[grid.height // 4, grid.width // 3] += sun * mean * np.array([1.0, 0.95, 0.8])
     return truth
+
+
+def cone_shadow_transport(grid: EnvGrid, texels: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
+    """(m, len(texels)) A of m plane pixels, each under a random occluder cone: shadow-like 0/1 visibility times
+    cosine times solid angle / pi. Draws the cones' axes and widths from ``rng`` (in that order)."""
+    dirs = grid.directions().reshape(-1, 3)[texels]
+    axes = rng.normal(size=(m, 3))
+    axes[:, 2] = np.abs(axes[:, 2]) + 0.3
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    vis = (axes @ dirs.T) < rng.uniform(0.6, 0.95, size=(m, 1))
+    return vis * np.maximum(dirs[:, 2], 0)[None] * grid.solid_angles().ravel()[texels][None] / np.pi
