@@ -468,18 +468,23 @@ def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, l
     info = {"steps": res.steps, "objective_history": hist, "edge_scale": res.edge_scale, "edge_eps": eps,
             "tone": res.tone, "tone_floor": params.edge_tone_floor if res.tone > 0 else None,
             "edges_above_threshold": round(res.kept_edges, 4),
-            "monotone": bool(all(b <= a * (1 + 1e-9) for a, b in zip(hist, hist[1:])))}
+            "monotone": _non_increasing(hist)}
     X = res.x
     if split:
         X = luminance_with_chroma(res.x, runs[1].x)
         hc = runs[1].objective_history
         info["chroma"] = {"ls_factor": params.chroma_ls_factor, "steps": runs[1].steps, "objective_history": hc,
-                          "monotone": bool(all(b <= a * (1 + 1e-9) for a, b in zip(hc, hc[1:]))),
+                          "monotone": _non_increasing(hc),
                           "black_texels_per_channel_before": [int(v) for v in (res.x <= 0).sum(axis=0)],
                           "black_texels_per_channel": [int(v) for v in (X <= 0).sum(axis=0)]}
     elif params.chroma_ls_factor > 0:
         info["chroma"] = {"ls_factor": params.chroma_ls_factor, "skipped": "A differs per channel"}
     return X, kkt, obj, iters, info
+
+
+def _non_increasing(history: list[float]) -> bool:
+    """An objective history that never rises (to 1e-9 relative)."""
+    return bool(all(b <= a * (1 + 1e-9) for a, b in zip(history, history[1:])))
 
 
 def _sigma(target, y: np.ndarray, rule: str) -> float | None:
