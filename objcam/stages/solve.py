@@ -22,6 +22,11 @@ Both solve for the envmap on a merged basis (objcam.solvers.basis, ``texel_group
 texels are joined into groups of about one equator texel's solid angle, the objective unchanged over envmaps
 constant on each group; the envmap is written back on the full lat-long grid.
 
+A supersampled transport (``transport.supersample`` 2: A on a 2x finer grid than the envmap asked for; known
+albedo only) is solved on the adaptive basis of objcam.solvers.refine: output texels, except the
+``refine_fraction`` with the most contrast in a pilot solve, which keep their fine texels. envmap.exr is the
+result area-averaged to the output grid; envmap_fine.exr and envmap_fine_mask.png hold it on A's grid.
+
 ``method=adam``: the gradient-descent baseline through Mitsuba's differentiable renderer (objcam.solvers.adam),
 on the texels.
 
@@ -47,6 +52,7 @@ from objcam.image_io import atomic_write_text, write_exr, write_png, write_tonem
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
 from objcam.solvers.basis import merge_gram, texel_basis, unknowns
+from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.solvers.regularization import DEFAULT_LR_REL
 from objcam.threads import parallel_map, single_blas_thread
 
@@ -86,6 +92,15 @@ EDGE_EPS_KNOWN = 0.001
 #: one solve 0.775 / 0.785 / 0.828 / 0.736; chroma at 4x 0.774 / 0.841 / 0.831 / 0.732, 10x 0.772 / 0.856 / 0.831 /
 #: 0.723, 20x 0.771 / 0.854 / 0.831 / 0.729.
 CHROMA_LS_FACTOR = 10.0
+#: Known albedo, prior=edges, supersampled A (transport.supersample 2, objcam.solvers.refine): ls = factor x sigma
+#: on the fine grid (mean diag(A^T A) there is ~1/16 of the output grid's, and each output edge is two fine
+#: edges: the output grid's 1.5 sigma is ~12 here). Measured on the bench's four HDRIs (bench/results.md, session
+#: 12), SSIM forest / courtyard at 7 / 10 / 14 sigma: 0.808 / 0.797, 0.804 / 0.823, 0.794 / 0.839.
+EDGE_LS_PER_SIGMA_SUPERSAMPLED = 10.0
+#: Supersampled A: the fraction of output texels (those of most contrast in a pilot solve) solved on the fine
+#: grid. Measured (same bench, 10 sigma): 0 (every output texel one unknown) forest 0.796 / courtyard 0.821,
+#: 0.03 0.801 / 0.823, 0.1 0.804 / 0.823, 0.2 0.807 / 0.820, all fine texels 0.808 / 0.825 at 5-10x the time.
+REFINE_FRACTION = 0.2
 #: Joint solve: the Huber threshold (its edge prior is untoned; 0.005 measured on the bench scenes).
 EDGE_EPS_JOINT = 0.005
 LS_RANGE = (3e-4, 0.3)
@@ -185,6 +200,10 @@ class Params(BaseModel):
         f"None: {TEXEL_GROUP_KNOWN:g} for a known albedo, {TEXEL_GROUP_JOINT:.3g} for the joint solve "
         "(bench/results.md). method=adam always optimises the texels")
     lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
+    refine_fraction: float = Field(REFINE_FRACTION, ge=0, le=1, description="supersampled A "
+                                   "(transport.supersample > 1), known albedo: the fraction of output texels, those "
+                                   "of most contrast in a pilot solve, solved on A's finer grid "
+                                   "(objcam.solvers.refine); the rest are one unknown each")
     lp: float | None = Field(None, ge=0, description="albedo smoothness weight (unknown albedo), relative to the "
                              f"albedo data term; None: 0 with >= 2 illuminations per camera, {LP_ONE_ILLUMINATION} "
                              "with one")
@@ -256,9 +275,14 @@ def _texel_mask(grid: EnvGrid, texel_index: np.ndarray) -> np.ndarray:
     return mask.reshape(grid.shape)
 
 
-def _write_target(d, env, mask, pooled, pooled_ok, pred, info, albedo=None, albedo_mask=None) -> None:
-    """The per-target artifacts shared by every path (see the module docstring)."""
+def _write_target(d, env, mask, pooled, pooled_ok, pred, info, albedo=None, albedo_mask=None,
+                  fine=None) -> None:
+    """The per-target artifacts shared by every path (see the module docstring); ``fine``: (env, mask) on a
+    supersampled A's grid, when env and mask are their area average."""
     resid = np.where(pooled_ok[..., None], pooled - pred, 0.0)
+    if fine is not None:
+        write_exr(d / "envmap_fine.exr", fine[0])
+        write_png(d / "envmap_fine_mask.png", fine[1].astype(float))
     write_exr(d / "envmap.exr", env)
     write_png(d / "envmap_mask.png", mask.astype(float))
     write_exr(d / "prediction.exr", pred)
@@ -321,7 +345,8 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
             ls, ls_source = params.ls, "param"
             if ls is None:
                 ls, ls_source = _noise_ls(target, pooled, pooled_ok, params, tr.downsample,
-                                          linear=params.prior == "edges" and params.method == "exact")
+                                          linear=params.prior == "edges" and params.method == "exact",
+                                          supersample=tr.env_height // tr.output_height)
             if rule is not None:
                 # one weight for the target's channels: the criterion on the grey (channel-mean) transport
                 Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)
@@ -347,7 +372,7 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
                     ls_abs, lr_abs = solvers.absolute_weights(G, ls, lr)
                     D = solvers.difference_operator(grid, tr.texel_index)
                     Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
-                    P = texel_basis(grid, tr.texel_index, _texel_group(params, known=True))
+                    P = _known_basis(tr, params)
                     gram_cache[key] = (Q, None) if P is None else (merge_gram(P, Q), P)
                 Q, P = gram_cache[key]
                 chans = [0, 1, 2] if C == 1 else [c]
@@ -363,12 +388,16 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
 
         env = tr.envmap_from_x(X)
         mask = _texel_mask(grid, tr.texel_index)
+        fine = None
+        if tr.output_height != tr.env_height:  # supersampled A: write the area average (objcam.solvers.refine)
+            fine = (env, mask)
+            env, mask = average_to(env, mask, tr.output_height)
         pred = tr.predict(X)
         fit = pred.reshape(-1, 3)[tr.pixel_index][use]
         rel_res = float(np.linalg.norm(fit - y[use]) / max(np.linalg.norm(y[use]), 1e-30))
         info = {
             "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
-            **_basis_info(grid, tr.texel_index, params, known=True),
+            **_basis_info(tr, params),
             "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()), "channels_in_A": int(C),
             "solve_seconds": round(solve_s, 4), "iterations": int(iters), "kkt_residual_max": float(kkt.max()),
             "objective": obj.tolist(), "relative_image_residual": rel_res, "ls_relative": ls, "lr_relative": lr,
@@ -378,7 +407,10 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
             info["edges"] = edge_info
         if auto_info:
             info["auto_reg"] = auto_info
-        _write_target(out / name, env, mask, pooled, pooled_ok, pred, info)
+        if fine is not None:
+            info["supersample"] = {"a_height": tr.env_height, "output_height": tr.output_height,
+                                   **(edge_info.pop("refine", {}) if "edges" in info else {})}
+        _write_target(out / name, env, mask, pooled, pooled_ok, pred, info, fine=fine)
         per_target[name] = info
     return per_target
 
@@ -392,14 +424,32 @@ def _texel_group(params: Params, known: bool) -> float:
     return TEXEL_GROUP_KNOWN if known else TEXEL_GROUP_JOINT
 
 
-def _basis_info(grid: EnvGrid, texel_index: np.ndarray, params: Params, known: bool) -> dict:
-    """solve.json's record of the envmap's unknowns (objcam.solvers.basis)."""
-    g = _texel_group(params, known)
+def _basis_info(tr, params: Params) -> dict:
+    """solve.json's record of a known-albedo solve's envmap basis (objcam.solvers.basis; a supersampled A's
+    output-texel basis before refinement: the edge solve's refined count is in ``supersample``)."""
+    return {"texel_group": _texel_group(params, True), "unknowns": unknowns(tr.texel_index, _known_basis(tr, params))}
+
+
+def _grid_basis_info(grid: EnvGrid, texel_index: np.ndarray, params: Params) -> dict:
+    """solve.json's record of the joint solve's envmap basis (objcam.solvers.basis)."""
+    g = _texel_group(params, known=False)
     return {"texel_group": g, "unknowns": unknowns(texel_index, texel_basis(grid, texel_index, g))}
 
 
+def _known_basis(tr, params: Params, split: np.ndarray | None = None):
+    """The known-albedo solve's basis P over A's texels (None: the texels): the merged basis
+    (objcam.solvers.basis), or for a supersampled A the output texels with ``split`` of them refined
+    (objcam.solvers.refine; None: none refined)."""
+    g = _texel_group(params, known=True)
+    if tr.output_height == tr.env_height:
+        return texel_basis(tr.grid, tr.texel_index, g)
+    if split is None:
+        split = np.zeros(coarse_of(tr.grid, tr.texel_index, tr.output_height)[0].size, bool)
+    return refined_basis(tr.grid, tr.texel_index, tr.output_height, split, g)
+
+
 def _noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: Params, f: int = 1,
-              linear: bool = False) -> tuple[float, str]:
+              linear: bool = False, supersample: int = 1) -> tuple[float, str]:
     """ls from the noise of one fitted pixel (the target's relative noise_sigma, given per photo pixel, over the
     f x f pooling; else estimated from the pooled image): ls_noise_factor x sigma^2, or x sigma when ``linear``
     (the known-albedo edge prior), within LS_RANGE (the noise sets how much the data can be trusted against the
@@ -415,8 +465,12 @@ def _noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: Params,
     if not sigma:
         return KNOWN_LS_REL, "default (noise unknown)"
     factor = params.ls_noise_factor
-    if factor is None:
-        factor = EDGE_LS_PER_SIGMA if linear else LS_NOISE_FACTOR
+    if factor is None and linear:
+        factor = EDGE_LS_PER_SIGMA if supersample == 1 else EDGE_LS_PER_SIGMA_SUPERSAMPLED
+    elif factor is None:
+        # a supersampled A (objcam.solvers.refine): mean diag(A^T A) shrinks ~s^4 and an output edge is s fine
+        # edges, so s^3 keeps the output grid's weight (derived, not tuned: the bench measures the edge prior)
+        factor = LS_NOISE_FACTOR * supersample**3
     ls = float(np.clip(factor * (sigma if linear else sigma**2), *LS_RANGE))
     return ls, f"{source} {sigma:.4f} per fitted pixel"
 
@@ -444,7 +498,16 @@ def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, l
     D = solvers.difference_operator(grid, tr.texel_index)
     eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
     yy = np.einsum("ij,ij->j", Y, Y)
-    basis = texel_basis(grid, tr.texel_index, _texel_group(params, known=True))
+    basis = _known_basis(tr, params)
+    refine_info = None
+    if tr.output_height != tr.env_height:
+        # supersampled A (objcam.solvers.refine): a pilot quadratic solve on the output texels says where the
+        # envmap has contrast; those output texels are solved on the fine grid
+        pilot = solve_edges(grams, rhs, chans, yy, D, ls_abs, lr_abs, steps=0, basis=basis)
+        split = split_by_contrast(contrast(grid, tr.texel_index, tr.output_height, pilot.x), params.refine_fraction)
+        basis = _known_basis(tr, params, split)
+        refine_info = {"refine_fraction": params.refine_fraction, "refined_output_texels": int(split.sum()),
+                       "output_texels": int(split.size), "unknowns": int(basis.shape[1])}
     # the chroma solve (objcam.solvers.chroma) needs one A for every channel: the luminance of X is then A's own
     split = params.chroma_ls_factor > 0 and C == 1
     weights = [ls_abs]
@@ -469,6 +532,8 @@ def _solve_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, l
             "tone": res.tone, "tone_floor": params.edge_tone_floor if res.tone > 0 else None,
             "edges_above_threshold": round(res.kept_edges, 4),
             "monotone": _non_increasing(hist)}
+    if refine_info:
+        info["refine"] = refine_info
     X = res.x
     if split:
         X = luminance_with_chroma(res.x, runs[1].x)
@@ -671,7 +736,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "pixels_albedo_known": n_held,
                 "illumination": ill, "cameras_in_problem": len(cams), "illuminations_in_problem": L,
                 "targets_in_problem": [t for cc in cams for t in cc["targets"]],
-                "texels": int(comp.texel_index.size), **_basis_info(grid, comp.texel_index, params, known=False),
+                "texels": int(comp.texel_index.size), **_grid_basis_info(grid, comp.texel_index, params),
                 "pixels_used": int(rows.size),
                 "pixels_excluded": int(tr.pixel_index.size - rows.size),
                 "pixels_excluded_mixed": c["n_mixed"],
@@ -870,6 +935,12 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     out = inputs.out
     t_all = time.perf_counter()
     data = _loaded(scene, inputs.upstream["transport"])
+    for name, (tr, *_rest) in data.items():
+        if tr.output_height != tr.env_height and (params.method == "adam" or tr.unknown_albedo.any()):
+            why = "method=adam" if params.method == "adam" else "an unknown albedo"
+            raise StageError(f"target '{name}': a supersampled transport (transport.supersample) is solved only "
+                             f"with a known albedo and method exact or paper, not {why}",
+                             inputs.capture / "capture.toml", "set transport.supersample=1")
     if params.method == "adam":
         per_target = _solve_adam(scene, data, params, out)
     else:

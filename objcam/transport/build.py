@@ -19,7 +19,8 @@ from objcam.transport.storage import ColumnWriter, add_to_columns
 @dataclass
 class BuildSettings:
     model: str = "auto"  # auto | direct | path
-    env_height: int = 32
+    env_height: int = 32  # A's grid
+    output_height: int | None = None  # the envmap asked for (None: env_height; see objcam.solvers.refine)
     samples: int = 4
     subpixel_samples: int = 32
     object_samples: int = 16
@@ -204,7 +205,8 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
     metrics["texels_kept"] = int(texel_index.size)
     metrics["model"] = chosen
     metrics["seconds"] = round(time.perf_counter() - t0, 3)
-    attrs = {"image_shape": [hp, wp], "downsample": f, "env_height": s.env_height, "channels": channels,
+    attrs = {"image_shape": [hp, wp], "downsample": f, "env_height": s.env_height,
+             "output_height": s.output_height or s.env_height, "channels": channels,
              "model": chosen, "model_requested": model, "samples": k if model != "path" else None,
              "subpixel_samples": n_sub,
              "spp": s.path_spp if model == "path" else (s.auto_spp if model == "auto" else None),

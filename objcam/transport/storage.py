@@ -14,8 +14,9 @@ Transport artifact folder (``objcam/transport/``):
         unknown_albedo  bool (M,)    a sample of the pixel lands on a surface of unknown albedo (rendered as 1)
         coverage        float32 (M,)  fraction of the pixel's samples that hit a surface (the rest see the envmap)
         object_fraction float32 (M,)  fraction of the hitting samples that land on the object
-        attributes: image_shape, downsample, env_height, channels, model, samples, spp, max_depth, camera,
-                    targets, metrics
+        attributes: image_shape, downsample, env_height (A's grid), output_height (the envmap the solve writes:
+                    env_height, or env_height / transport.supersample), channels, model, samples, spp, max_depth,
+                    camera, targets, metrics
 Units: x is envmap radiance per texel (box texels); A x is pixel radiance.
 """
 
@@ -189,6 +190,12 @@ class Transport:
     @property
     def grid(self) -> EnvGrid:
         return EnvGrid(self.env_height)
+
+    @property
+    def output_height(self) -> int:
+        """Rows of the envmap the solve writes: env_height, or fewer when A was supersampled
+        (transport.supersample; objcam.solvers.refine)."""
+        return int(self.attrs.get("output_height") or self.env_height)
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """Pooled image (H', W', 3) of A x for x (N, 3) (or (N,): grey), zeros where no pixel is kept."""
