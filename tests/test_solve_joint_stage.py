@@ -131,6 +131,15 @@ def test_same_illumination_twice_in_one_camera_is_refused(capture, tmp_path, cap
     assert line.startswith("objcam: error:") and "capture.toml" in line and "illumination" in line
 
 
+def test_supersampled_transport_with_unknown_albedo_is_refused(capture, tmp_path, capsys):
+    # the adaptive basis of objcam.solvers.refine is built for the known-albedo solve only
+    assert main(["run", str(capture), "--until", "solve", "--work", str(tmp_path / "work"), *RUN,
+                 "--set", "transport.supersample=2"]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("objcam: error:") and "capture.toml" in line and "unknown albedo" in line
+    assert "transport.supersample=1" in line
+
+
 def test_diverging_iteration_keeps_the_last_good_estimate(capture, tmp_path):
     work = tmp_path / "work"
     # alpha > 2 makes the damped step overshoot: the guard stops it, the best estimate seen is written and marked
