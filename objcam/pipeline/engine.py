@@ -36,12 +36,12 @@ def default_work_dir(capture: Path) -> Path:
 
 
 def parse_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
-    """``["transport.k=4", "solve.method=paper"]`` -> {"transport": {"k": 4}, "solve": {"method": "paper"}}.
+    """``["transport.samples=4", "solve.method=paper"]`` -> {"transport": {"samples": 4}, "solve": {"method": "paper"}}.
     Values are read as JSON when they parse (numbers, true/false, lists), else as strings."""
     out: dict[str, dict[str, Any]] = {}
     for item in items:
         if "=" not in item or "." not in item.split("=", 1)[0]:
-            raise ObjcamError(f"--set {item!r}: expected stage.param=value (e.g. transport.k=4)")
+            raise ObjcamError(f"--set {item!r}: expected stage.param=value (e.g. transport.samples=4)")
         lhs, value = item.split("=", 1)
         stage, param = lhs.split(".", 1)
         if stage not in graph.STAGES:

@@ -98,8 +98,8 @@ CHROMA_LS_FACTOR = 10.0
 #: 12), SSIM forest / courtyard at 7 / 10 / 14 sigma: 0.808 / 0.797, 0.804 / 0.823, 0.794 / 0.839.
 EDGE_LS_PER_SIGMA_SUPERSAMPLED = 10.0
 #: Supersampled A: the fraction of output texels (those of most contrast in a pilot solve) solved on the fine
-#: grid. Measured (same bench, 10 sigma): 0 (every output texel one unknown) forest 0.796 / courtyard 0.821,
-#: 0.03 0.801 / 0.823, 0.1 0.804 / 0.823, 0.2 0.807 / 0.820, all fine texels 0.808 / 0.825 at 5-10x the time.
+#: grid. Measured (same bench, 10 sigma): 0 (every output texel one unknown) forest 0.791 / courtyard 0.821,
+#: 0.1 0.804 / 0.823, 0.2 0.807 / 0.820, all fine texels 0.808 / 0.825 at 5-10x the time.
 REFINE_FRACTION = 0.2
 #: Joint solve: the Huber threshold (its edge prior is untoned; 0.005 measured on the bench scenes).
 EDGE_EPS_JOINT = 0.005
