@@ -85,8 +85,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         A = tr.A[0] if tr.channels == 1 else tr.A.mean(axis=0)
         # the target's solved envmap at the kept texels, RGB (N, 3)
         # (on A's grid: a supersampled transport's solve writes it as envmap_fine.exr, objcam.solvers.refine)
-        env_file = next(p for p in (solve_dir / target.name / "envmap_fine.exr", solve_dir / target.name / "envmap.exr")
-                        if p.is_file())
+        sdir = solve_dir / target.name
+        env_file = next(p for p in (sdir / "envmap_fine.exr", sdir / "envmap.exr") if p.is_file())
         x_solved = read_exr(env_file)[..., :3].reshape(-1, 3)[tr.texel_index]
         if group not in done_groups:
             G = tr.gram()[0] if tr.channels == 1 else gram(A)

@@ -28,7 +28,7 @@ class Params(BaseModel):
     supersample: int = Field(1, ge=1, le=2, description="build A on a grid this many times finer than env_height; "
                              "the solve resolves sub-texel light where the envmap has contrast and writes the "
                              "envmap area-averaged to env_height (objcam.solvers.refine). 2: the quality setting "
-                             "(~2.4x the A time, ~3x the solve time)")
+                             "(bench: ~3x the A time, 3-4x the solve time; known albedo only)")
     samples: int = Field(4, ge=1, description="direct: K shadow rays per traced (pixel, texel) pair, from K of "
                                                    "the pixel's sub-pixel samples")
     subpixel_samples: int = Field(32, ge=1, description="direct: S camera rays per pooled pixel (rounded up to a "
