@@ -125,7 +125,7 @@ def test_chroma_from_a_smoother_solve(capture, tmp_path):
     assert np.abs(split - one).max() > 1e-3 * one.max()
 
 
-def test_supersampled_transport(capture, tmp_path):
+def test_supersampled_transport(capture, tmp_path, capsys):
     """transport.supersample=2: A on the 64 x 128 grid, the solve on the adaptive basis (objcam.solvers.refine),
     envmap.exr area-averaged to the 32 x 64 asked for (envmap_fine.exr on A's grid); evaluate and analysis run on
     it (and the report), and it recovers the sun and the irradiance like the default."""
@@ -164,6 +164,11 @@ def test_supersampled_transport(capture, tmp_path):
     assert metrics["relative_rmse"] < 0.9 * default["relative_rmse"], (metrics, default)
     assert metrics["ssim"] > default["ssim"] - 0.01, (metrics["ssim"], default["ssim"])
     assert (work / "report" / "index.html").is_file()
+    # Adam optimises the texels through the renderer: it has no adaptive basis, and says so in one line
+    assert main(["run", str(capture), "--quiet", "--work", str(work), "--until", "solve", "--set",
+                 "transport.model=direct", "--set", "transport.supersample=2", "--set", "solve.method=adam"]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("objcam: error:") and "method=adam" in line and "transport.supersample=1" in line
 
 
 def test_analysis_maps(capture):

@@ -132,12 +132,15 @@ def test_same_illumination_twice_in_one_camera_is_refused(capture, tmp_path, cap
 
 
 def test_supersampled_transport_with_unknown_albedo_is_refused(capture, tmp_path, capsys):
-    # the adaptive basis of objcam.solvers.refine is built for the known-albedo solve only
-    assert main(["run", str(capture), "--until", "solve", "--work", str(tmp_path / "work"), *RUN,
+    # the adaptive basis of objcam.solvers.refine is built for the known-albedo solve only: the transport stage
+    # refuses before building A
+    work = tmp_path / "work"
+    assert main(["run", str(capture), "--until", "solve", "--work", str(work), *RUN,
                  "--set", "transport.supersample=2"]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
-    assert line.startswith("objcam: error:") and "capture.toml" in line and "unknown albedo" in line
-    assert "transport.supersample=1" in line
+    assert line.startswith("objcam: error:") and "capture.toml" in line and "known albedo" in line
+    assert "support's albedo unknown" in line and "transport.supersample=1" in line
+    assert not (work / "transport" / "index.json").exists()
 
 
 def test_diverging_iteration_keeps_the_last_good_estimate(capture, tmp_path):

@@ -12,6 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from objcam.errors import StageError
 from objcam.pipeline.stage import StageInputs, StageOutputs
 
 NAME = "transport"
@@ -87,6 +88,12 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     for t in art.targets:
         groups.setdefault(json.dumps(t.camera.model_dump(), sort_keys=True), []).append(t)
     fine_height = params.env_height * params.supersample  # A's grid (objcam.solvers.refine)
+    desc = art.description
+    if params.supersample > 1 and not (desc.albedo_object.known and desc.albedo_support.known):
+        # refused here, before the build, rather than by the solve after it
+        raise StageError("transport.supersample > 1 is solved only with a known albedo, and this capture leaves "
+                         "the " + ("object's" if not desc.albedo_object.known else "support's") + " albedo unknown",
+                         inputs.capture / "capture.toml", "set transport.supersample=1")
     geo = SceneGeometry.load(art.description, art.folder, env_height=fine_height,
                              upsample=params.path_upsample)
     mapping: dict[str, str] = {}
