@@ -136,22 +136,17 @@ def reference_columns(capture: Path, work: Path, n_cols: int, spp: int, seed: in
 def column_error(tr, ref: dict) -> float:
     """Relative column L2 of A against the reference, with the reference's own Monte-Carlo noise removed:
     E||a - r||^2 = ||a - r_true||^2 + sigma^2, and sigma^2 = E||r_a - r_b||^2 / 2 from the two renders."""
-    A = tr.A.mean(axis=0) if tr.A.shape[0] > 1 else tr.A[0]
-    height = int(ref.get("env_height", tr.env_height))
-    if tr.env_height != height:  # a supersampled A: a reference texel's column is the sum of its fine texels'
-        from objcam.solvers.refine import coarse_of
+    from objcam.solvers.refine import coarse_of
 
-        cidx, member = coarse_of(tr.grid, tr.texel_index, height)
-        A = np.stack([A[:, member == k].sum(axis=1) for k in range(cidx.size)], axis=1)
-        col = {int(t): i for i, t in enumerate(cidx)}
-    else:
-        col = {int(t): i for i, t in enumerate(tr.texel_index)}
+    A = tr.A.mean(axis=0) if tr.A.shape[0] > 1 else tr.A[0]
+    # the reference's texels are on its own grid: a supersampled A's column for one is the sum of its fine texels'
+    cidx, member = coarse_of(tr.grid, tr.texel_index, int(ref.get("env_height", tr.env_height)))
     # A's rows are the kept pixels; the reference was rendered at the same pooled pixels
     if not np.array_equal(ref["pixel_index"], tr.pixel_index):
         raise RuntimeError("reference columns were rendered for other pixels")
     num = den = 0.0
     for k, t in enumerate(ref["texels"]):
-        a = A[:, col[int(t)]].astype(np.float64)
+        a = A[:, member == np.searchsorted(cidx, int(t))].sum(axis=1, dtype=np.float64)
         ra, rb = ref["ref_a"][k], ref["ref_b"][k]
         r = 0.5 * (ra + rb)
         noise = 0.25 * np.sum((ra - rb) ** 2)  # variance of the mean of two renders

@@ -23,7 +23,7 @@ texels are joined into groups of about one equator texel's solid angle, the obje
 constant on each group; the envmap is written back on the full lat-long grid.
 
 A supersampled transport (``transport.supersample`` 2: A on a 2x finer grid than the envmap asked for; known
-albedo only) is solved on the adaptive basis of objcam.solvers.refine: output texels, except the
+albedo only, method exact or paper) is solved on the adaptive basis of objcam.solvers.refine: output texels, except the
 ``refine_fraction`` with the most contrast in a pilot solve, which keep their fine texels. envmap.exr is the
 result area-averaged to the output grid; envmap_fine.exr and envmap_fine_mask.png hold it on A's grid.
 
@@ -935,12 +935,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     out = inputs.out
     t_all = time.perf_counter()
     data = _loaded(scene, inputs.upstream["transport"])
-    for name, (tr, *_rest) in data.items():
-        if tr.output_height != tr.env_height and (params.method == "adam" or tr.unknown_albedo.any()):
-            why = "method=adam" if params.method == "adam" else "an unknown albedo"
-            raise StageError(f"target '{name}': a supersampled transport (transport.supersample) is solved only "
-                             f"with a known albedo and method exact or paper, not {why}",
-                             inputs.capture / "capture.toml", "set transport.supersample=1")
+    if params.method == "adam" and any(tr.output_height != tr.env_height for tr, *_ in data.values()):
+        # (an unknown albedo is refused by the transport stage, before it builds a supersampled A)
+        raise StageError("a supersampled transport (transport.supersample) is solved by method exact or paper, "
+                         "not method=adam", inputs.capture / "capture.toml", "set transport.supersample=1")
     if params.method == "adam":
         per_target = _solve_adam(scene, data, params, out)
     else:

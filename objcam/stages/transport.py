@@ -94,7 +94,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         raise StageError("transport.supersample > 1 is solved only with a known albedo, and this capture leaves "
                          "the " + ("object's" if not desc.albedo_object.known else "support's") + " albedo unknown",
                          inputs.capture / "capture.toml", "set transport.supersample=1")
-    geo = SceneGeometry.load(art.description, art.folder, env_height=fine_height,
+    geo = SceneGeometry.load(desc, art.folder, env_height=fine_height,
                              upsample=params.path_upsample)
     mapping: dict[str, str] = {}
     metrics: dict = {}
