@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from objcam.envmap import EnvGrid
+from objcam.envmap import EnvGrid, area_downsample
 from objcam.solvers.basis import texel_basis
 from objcam.solvers.regularization import difference_operator
 
@@ -83,12 +83,9 @@ def split_by_contrast(scores: np.ndarray, fraction: float) -> np.ndarray:
 def average_to(env: np.ndarray, mask: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Area-average a fine envmap (H, 2H, C) over its kept texels ``mask`` (H, 2H) to ``height`` rows: (env_out
     (height, 2 height, C) radiance, mask_out: output texels holding at least one kept fine texel)."""
-    fine = EnvGrid(env.shape[0])
-    if fine.height % height:
-        raise ValueError(f"envmap height {fine.height} is not a multiple of {height}")
-    s = fine.height // height
-    w = fine.solid_angles() * mask
-    num = (env * w[..., None]).reshape(height, s, 2 * height, s, -1).sum(axis=(1, 3))
-    den = w.reshape(height, s, 2 * height, s).sum(axis=(1, 3))
+    # the solid-angle mean of env x mask over the mean of mask: the mean over the kept texels only
+    m = np.asarray(mask, np.float64)
+    num = area_downsample(env * m[..., None], height)
+    den = area_downsample(m, height)
     out = np.where(den[..., None] > 0, num / np.maximum(den, 1e-300)[..., None], 0.0)
     return out.astype(env.dtype), den > 0

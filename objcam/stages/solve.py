@@ -397,7 +397,7 @@ def _solve_known(scene, data, params: Params, out, names: list[str]) -> dict[str
         rel_res = float(np.linalg.norm(fit - y[use]) / max(np.linalg.norm(y[use]), 1e-30))
         info = {
             "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
-            **_basis_info(tr, params),
+            **_basis_info(tr.texel_index, _known_basis(tr, params), params, known=True),
             "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()), "channels_in_A": int(C),
             "solve_seconds": round(solve_s, 4), "iterations": int(iters), "kkt_residual_max": float(kkt.max()),
             "objective": obj.tolist(), "relative_image_residual": rel_res, "ls_relative": ls, "lr_relative": lr,
@@ -424,16 +424,10 @@ def _texel_group(params: Params, known: bool) -> float:
     return TEXEL_GROUP_KNOWN if known else TEXEL_GROUP_JOINT
 
 
-def _basis_info(tr, params: Params) -> dict:
-    """solve.json's record of a known-albedo solve's envmap basis (objcam.solvers.basis; a supersampled A's
-    output-texel basis before refinement: the edge solve's refined count is in ``supersample``)."""
-    return {"texel_group": _texel_group(params, True), "unknowns": unknowns(tr.texel_index, _known_basis(tr, params))}
-
-
-def _grid_basis_info(grid: EnvGrid, texel_index: np.ndarray, params: Params) -> dict:
-    """solve.json's record of the joint solve's envmap basis (objcam.solvers.basis)."""
-    g = _texel_group(params, known=False)
-    return {"texel_group": g, "unknowns": unknowns(texel_index, texel_basis(grid, texel_index, g))}
+def _basis_info(texel_index: np.ndarray, P, params: Params, known: bool) -> dict:
+    """solve.json's record of the envmap basis P over ``texel_index`` (objcam.solvers.basis; for a supersampled A
+    the output-texel basis before refinement: the edge solve's refined count is in ``supersample``)."""
+    return {"texel_group": _texel_group(params, known), "unknowns": unknowns(texel_index, P)}
 
 
 def _known_basis(tr, params: Params, split: np.ndarray | None = None):
@@ -719,6 +713,8 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
         alb[tr.pixel_index[rows]] = rho
         alb_mask = np.zeros(hw, bool)
         alb_mask[tr.pixel_index[rows][tr.unknown_albedo[rows]]] = True
+        basis_info = _basis_info(comp.texel_index, texel_basis(grid, comp.texel_index, _texel_group(params, False)),
+                                 params, known=False)
         for l, (ill, name) in enumerate(zip(comp.illuminations, c["targets"])):
             x = res.x[:, l, :]  # (N_union, 3)
             env = np.zeros((grid.n_texels, 3), np.float32)
@@ -736,7 +732,7 @@ def _solve_unknown(scene, data, params: Params, out, comp, tr_of_cam, names_of) 
                 "pixels_albedo_known": n_held,
                 "illumination": ill, "cameras_in_problem": len(cams), "illuminations_in_problem": L,
                 "targets_in_problem": [t for cc in cams for t in cc["targets"]],
-                "texels": int(comp.texel_index.size), **_grid_basis_info(grid, comp.texel_index, params),
+                "texels": int(comp.texel_index.size), **basis_info,
                 "pixels_used": int(rows.size),
                 "pixels_excluded": int(tr.pixel_index.size - rows.size),
                 "pixels_excluded_mixed": c["n_mixed"],
