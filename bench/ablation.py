@@ -145,11 +145,11 @@ def adam_objective(cap: Path, ls_rel: float, lr_rel: float) -> tuple[float, floa
     from objcam.image_io import read_exr
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.solvers.adam import AdamProblem, AdamSettings
-    from objcam.stages.solve import _loaded
+    from objcam.stages.solve import load_targets
 
     w = cap / "objcam"
     scene = SceneArtifact.load(w / "scene")
-    data = _loaded(scene, w / "transport")
+    data = load_targets(scene, w / "transport")
     groups: dict[str, list[str]] = {}
     for t in scene.targets:
         groups.setdefault(str(data[t.name][0].folder), []).append(t.name)

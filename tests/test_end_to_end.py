@@ -88,7 +88,7 @@ def test_exact_never_worse_than_paper(capture, tmp_path):
 def test_noise_rules_set_ls(capture, tmp_path):
     """The default (edge prior) takes ls = 1.5 sigma, the quadratic prior 300 sigma^2, sigma the target's
     noise_sigma (one fitted pixel: the transport does not pool this 64 x 64 target)."""
-    from objcam.stages.solve import EDGE_LS_PER_SIGMA, LS_NOISE_FACTOR, LS_RANGE
+    from objcam.solvers.plan.defaults import EDGE_LS_PER_SIGMA, LS_NOISE_FACTOR, LS_RANGE
     import tomllib
 
     sigma = tomllib.loads((capture / "capture.toml").read_text())["targets"][0]["noise_sigma"]
@@ -106,7 +106,7 @@ def test_noise_rules_set_ls(capture, tmp_path):
 def test_chroma_from_a_smoother_solve(capture, tmp_path):
     """The default takes the envmap's chroma from a second solve at CHROMA_LS_FACTOR x ls and its luminance from
     the solve at ls: the channel mean is exactly that of the one-solve estimate (chroma_ls_factor=0)."""
-    from objcam.stages.solve import CHROMA_LS_FACTOR
+    from objcam.solvers.plan.defaults import CHROMA_LS_FACTOR
 
     d = capture / "objcam" / "solve" / "t0"
     info = json.loads((d / "solve.json").read_text())
@@ -133,7 +133,7 @@ def test_supersampled_transport(capture, tmp_path, capsys):
     import tomllib
 
     from objcam.solvers.refine import average_to
-    from objcam.stages.solve import EDGE_LS_PER_SIGMA_SUPERSAMPLED, LS_RANGE, REFINE_FRACTION
+    from objcam.solvers.plan.defaults import EDGE_LS_PER_SIGMA_SUPERSAMPLED, LS_RANGE, REFINE_FRACTION
 
     work = tmp_path / "ss"
     assert main(["run", str(capture), "--quiet", "--work", str(work),

@@ -62,11 +62,11 @@ def test_adam_objective_is_the_exact_solvers_objective(capture):
     from objcam.image_io import read_exr
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.solvers.adam import AdamProblem, AdamSettings
-    from objcam.stages.solve import _loaded
+    from objcam.stages.solve import load_targets
 
     w = capture / "objcam"
     scene = SceneArtifact.load(w / "scene")
-    data = _loaded(scene, w / "transport")
+    data = load_targets(scene, w / "transport")
     ls_rel, lr_rel = 0.05, 1e-4
     pb = AdamProblem.build(data, ["t0"], AdamSettings(ls=ls_rel, lr_ridge=lr_rel))
     tr, y, use = data["t0"][0], data["t0"][3], data["t0"][4]

@@ -273,7 +273,8 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
     refitting once (a refit on top of a refit would count the change twice)."""
     from types import SimpleNamespace
 
-    from objcam.stages.solve import Params, _refit_bounce
+    from objcam.solvers.plan.bounce import refit_bounce
+    from objcam.solvers.plan.params import SolveParams as Params
     from objcam.transport import load_transport
 
     work = tmp_path / "auto"
@@ -301,9 +302,9 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
     cam = dict(tr=tr, rows=rows, A=A.copy())
     res = SimpleNamespace(rho=[rho], diverged=False, objective=np.ones(3))
     comp = SimpleNamespace(texel_index=tr.texel_index)
-    once = _refit_bounce([cam], comp, res, Params())
+    once = refit_bounce([cam], comp, res, Params())
     A1 = cam["A"].copy()
-    _refit_bounce([cam], comp, res, Params())
+    refit_bounce([cam], comp, res, Params())
     assert once and not np.array_equal(A1, A)  # the refit changed A'
     np.testing.assert_array_equal(cam["A"], A1)  # and a second one from the same estimate leaves it there
 
@@ -312,16 +313,17 @@ def test_a_refit_that_finds_nothing_to_redo_still_converges_to_the_requested_tol
                                                                                         monkeypatch):
     """The first solve stops early (relative decrease 3e-2) when a bounce refit will follow; if the refit then has
     no cell to redo, the solve is finished at the requested tolerance, not left at the early stop."""
-    import objcam.stages.solve as solve_stage
+    import objcam.solvers.plan.bounce as bounce
+    from objcam.solvers.plan.defaults import JOINT_TOL_FINAL
 
-    monkeypatch.setattr(solve_stage, "_refit_bounce", lambda *a, **k: [])
+    monkeypatch.setattr(bounce, "refit_bounce", lambda *a, **k: [])
     work = tmp_path / "auto"
     assert main(["run", str(capture), "--until", "solve", "--work", str(work), "--quiet",
                  "--set", "transport.model=auto", "--set", "transport.auto_noise=1e-6",
                  "--set", "transport.env_height=8"]) == 0
     info = json.loads((work / "solve" / "cam0_rot0" / "solve.json").read_text())
     assert info["bounce_refits"] == [] and info["converged"]
-    assert f"< {solve_stage.JOINT_TOL_FINAL:g}" in info["message"], info["message"]  # the final step follows
+    assert f"< {JOINT_TOL_FINAL:g}" in info["message"], info["message"]  # the final step follows
 
 
 def test_two_cameras_one_illumination_with_the_bounce_refit(tmp_path):
@@ -358,7 +360,7 @@ def test_the_subsampled_first_solve_gives_every_pixel_the_albedo_of_its_least_sq
 
     from objcam.envmap import EnvGrid
     from objcam.solvers.jointauto import JointSetup
-    from objcam.stages.solve import _solve_subsampled, _subsample
+    from objcam.solvers.plan.bounce import solve_subsampled, subsample
 
     rng = np.random.default_rng(3)
     h, w, n, L = 20, 20, 24, 3
@@ -373,7 +375,7 @@ def test_the_subsampled_first_solve_gives_every_pixel_the_albedo_of_its_least_sq
                rho0=rho0, fixed=fixed)
     grid = EnvGrid(4)
     setup = JointSetup(prior="smooth", ls=1e-9, lr=1e-12, rule="off", tol=1e-12, max_iter=300, polish=False)
-    res, _, fitted = _solve_subsampled([cam], _subsample([cam], 2), grid, np.arange(n), setup, None)
+    res, _, fitted = solve_subsampled([cam], subsample([cam], 2), grid, np.arange(n), setup, None)
     on_grid = ((pix // w) % 2 == 0) & ((pix % w) % 2 == 0)
     assert fitted == int((on_grid | fixed).sum())
     est = res.rho[0]
@@ -385,14 +387,16 @@ def test_the_subsampled_first_solve_gives_every_pixel_the_albedo_of_its_least_sq
 
 
 def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
-    """The final envmap solve (solve._final_envmaps) of y_lc = diag(rho_pc) A'_p x_lc over two cameras: the same
-    minimiser as the known-albedo edge solver given the float64 stacked Gram matrices, and, with noise-free data
-    and a faint prior, the true envmaps."""
+    """The final envmap solve (objcam.solvers.plan.final.final_envmaps) of y_lc = diag(rho_pc) A'_p x_lc over two
+    cameras: the same minimiser as the known-albedo edge solver given the float64 stacked Gram matrices, and, with
+    noise-free data and a faint prior, the true envmaps."""
     from objcam import solvers
     from objcam.envmap import EnvGrid
     from objcam.solvers.basis import texel_basis
     from objcam.solvers.edges import solve_edges
-    from objcam.stages.solve import EDGE_EPS_KNOWN, Params, _final_envmaps
+    from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN
+    from objcam.solvers.plan.final import final_envmaps
+    from objcam.solvers.plan.params import SolveParams as Params
 
     rng = np.random.default_rng(3)
     grid = EnvGrid(4)
@@ -407,7 +411,7 @@ def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
         cams.append(dict(A=A, Y=Y))
         rhos.append(rho)
     params = Params()
-    X, info = _final_envmaps(cams, rhos, grid, texel_index, params, ls=1e-3)
+    X, info = final_envmaps(cams, rhos, grid, texel_index, params, ls=1e-3)
     assert X.shape == (n, L, 3) and info["ls_relative"] == 1e-3 and info["kkt_residual_max"] < 1e-8
     # reference: the stacked system in float64, solved by the known-albedo edge solver
     grams = [sum((r[:, c, None] * cam["A"]).T @ (r[:, c, None] * cam["A"]) for cam, r in zip(cams, rhos))
@@ -423,5 +427,5 @@ def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
                           eps_rel=EDGE_EPS_KNOWN, tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=P)
         np.testing.assert_allclose(X[:, l], ref.x, rtol=1e-4, atol=1e-6)
     # a faint prior on the texels themselves: the noise-free data give back the truth
-    X0, _ = _final_envmaps(cams, rhos, grid, texel_index, Params(lr=1e-12, texel_group=0), ls=1e-9)
+    X0, _ = final_envmaps(cams, rhos, grid, texel_index, Params(lr=1e-12, texel_group=0), ls=1e-9)
     np.testing.assert_allclose(X0, X_true, rtol=1e-3)

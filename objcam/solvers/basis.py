@@ -16,7 +16,7 @@ The solves minimise the same objective as on the texels, restricted to envmaps `
 group (P the N x N' 0/1 membership matrix): the data term on the merged columns ``A P``, the smoothness prior on
 ``D P`` (edges inside a group are zero), the ridge on ``||P z||^2 = sum_g k_g z_g^2``, so the weights keep their
 meaning; the result is written back as ``x = P z`` on the lat-long grid. Measured on the bench (bench/results.md,
-session 9): see objcam.stages.solve's defaults.
+session 9): see objcam.solvers.plan.defaults.
 """
 
 from __future__ import annotations

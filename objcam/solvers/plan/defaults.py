@@ -1,0 +1,108 @@
+"""The solve's measured defaults: every constant a rule of the plan uses, each with how it was chosen.
+
+Each number was measured on the bench (bench/results.md names the session); the rules that use them live in
+:mod:`objcam.solvers.plan.rules` (weights from the noise, texel groups) and in the steps of the plan
+(:mod:`objcam.solvers.plan.known`, :mod:`objcam.solvers.plan.unknown`, :mod:`objcam.solvers.plan.final`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Envmap basis (objcam.solvers.basis), the largest group per row in equator-texel solid angles. Measured on the
+#: bench (bench/results.md, session 9): a known albedo resolves the polar texels' texture (forest SSIM 0.777 with
+#: one unknown per texel, 0.775 at 1, 0.765 at sqrt 2; courtyard 0.787 / 0.785 / 0.786), so it merges only what
+#: spans less than one equator texel; with unknown albedo the albedo, not the basis, limits the envmap (dots
+#: scene SSIM 0.607 / 0.609 / 0.609) and sqrt 2 solves 1.4x faster than the texels.
+TEXEL_GROUP_KNOWN = 1.0
+TEXEL_GROUP_JOINT = float(np.sqrt(2.0))
+#: Unknown-albedo smoothness when ls is not given: measured best on the bundled path-traced targets, whose
+#: model error (indirect light, ~1-2% noise) GCV cannot see (bench/results.md).
+KNOWN_LS_REL = 0.1
+#: Known albedo, ls not given, prior=smooth (and method=paper): ls = factor x sigma^2 (sigma: relative pixel
+#: noise), clipped to LS_RANGE. The joint (unknown-albedo) solve uses the same rule: measured near the best envmap
+#: SSIM on the 3-illumination bench scene (bench/results.md).
+LS_NOISE_FACTOR = 300.0
+#: Known albedo, prior=edges (the default), ls not given: ls = factor x sigma. The Huber prior is scaled by the RMS
+#: edge of the first (quadratic) solve, which grows with the noise, so the weight that balances the data grows like
+#: sigma, not sigma^2. Measured with the tone weighting (bench/results.md): best ls ~1-2 sigma both on the bench's
+#: 0.2-0.4% noise targets and on the 2.3% noise of `make demo` (SSIM 0.59 at 1.5 sigma against 0.48 at 600 sigma^2).
+EDGE_LS_PER_SIGMA = 1.5
+#: Known albedo, prior=edges: tone exponent, its floor and the Huber threshold. Measured on the bench's four HDRIs
+#: (bench/results.md, objcam.solvers.edges): with ls 1.5 sigma against no tone weighting, eps 0.005 and
+#: 300 sigma^2, SSIM courtyard 0.70 -> 0.79, sunrise 0.65 -> 0.74, forest 0.79 -> 0.78, city 0.86 -> 0.83, and
+#: relative RMSE better on three of the four (city 1.50 -> 1.04, sunrise 4.9 -> 3.7).
+EDGE_TONE = 0.3
+EDGE_TONE_FLOOR = 0.05
+EDGE_EPS_KNOWN = 0.001
+#: Known albedo, prior=edges, grey A: the chroma's smoothness relative to the luminance's (objcam.solvers.chroma).
+#: Measured on the bench (bench/results.md, session 11) at ls 1.5 sigma, SSIM forest / courtyard / city / sunrise:
+#: one solve 0.775 / 0.785 / 0.828 / 0.736; chroma at 4x 0.774 / 0.841 / 0.831 / 0.732, 10x 0.772 / 0.856 / 0.831 /
+#: 0.723, 20x 0.771 / 0.854 / 0.831 / 0.729.
+CHROMA_LS_FACTOR = 10.0
+#: Known albedo, prior=edges, supersampled A (transport.supersample 2, objcam.solvers.refine): ls = factor x sigma
+#: on the fine grid (mean diag(A^T A) there is ~1/16 of the output grid's, and each output edge is two fine
+#: edges: the output grid's 1.5 sigma is ~12 here). Measured on the bench's four HDRIs (bench/results.md, session
+#: 12), SSIM forest / courtyard at 7 / 10 / 14 sigma: 0.808 / 0.797, 0.804 / 0.823, 0.794 / 0.839.
+EDGE_LS_PER_SIGMA_SUPERSAMPLED = 10.0
+#: Supersampled A: the fraction of output texels (those of most contrast in a pilot solve) solved on the fine
+#: grid. Measured (same bench, 10 sigma): 0 (every output texel one unknown) forest 0.791 / courtyard 0.821,
+#: 0.1 0.804 / 0.823, 0.2 0.807 / 0.820, all fine texels 0.808 / 0.825 at 5-10x the time.
+REFINE_FRACTION = 0.2
+#: Joint solve: the Huber threshold (its edge prior is untoned; 0.005 measured on the bench scenes).
+EDGE_EPS_JOINT = 0.005
+LS_RANGE = (3e-4, 0.3)
+#: Joint solve with auto_reg: the smoothness (relative to A', albedo 1) of the provisional solve whose albedo the
+#: criterion is evaluated at. On the 3-illumination 'dots' scene (bench/results.md) GCV, the discrepancy principle
+#: and the L-curve all chose the floor of their grid (~1e-8: envmap SSIM 0.10 against 0.31-0.34 at fixed weights),
+#: because the residual is dominated by model error (interreflections rendered at albedo 1, shadow discretisation)
+#: that none of them models; hence auto_reg is off by default.
+JOINT_LS0_REL = 1e-2
+#: Joint solve: stop when a sweep lowers the objective by less than this fraction. On the 3-illumination bench
+#: scene (split targets, edge prior) sweeps 8-9 at 1e-4 changed envmap SSIM by 0.0003 and albedo RMSE by 0.0001
+#: against 1e-3 (7 sweeps), for 19% more time (bench/results.md).
+JOINT_TOL = 1e-3
+#: ... and when the final step (final_envmap=known) follows: the joint solve then only provides the albedo that the
+#: TV step starts from. Measured on the dots bench scene: envmap SSIM 0.6669 at 1e-2 (4 sweeps) against 0.6666
+#: at 1e-3 (7 sweeps), the same albedo error (bench/results.md).
+JOINT_TOL_FINAL = 1e-2
+#: Joint solve followed by a bounce refit: the first solve's stopping tolerance (relative decrease per sweep).
+BOUNCE_FIRST_TOL = 3e-2
+#: Joint solve, prior=edges: majorise-minimise x-steps per sweep (each reuses the sweep's Gram matrices). One
+#: step per sweep (the weights are refreshed at every sweep anyway) measured on the dots bench scene: solve 17.5 ->
+#: 15.9 s, envmap SSIM 0.602 -> 0.605, relative RMSE 0.659 -> 0.657, the same albedo (bench/results.md).
+JOINT_EDGE_STEPS = 1
+#: Joint solve followed by a bounce refit: the first solve fits one pixel in ``stride^2`` (a regular grid over the
+#: image; every pixel of known albedo kept), then every pixel's albedo is its least-squares value at those
+#: envmaps. The refit only needs the support's albedo averaged over its cells, and the second solve redoes every
+#: pixel. Measured on the dots bench scene (stride 1 / 2 / 3 / 4): first solve 6.0 / 3.1 / 2.4 / 2.3 s, envmap
+#: SSIM after the second solve 0.605 / 0.608 / 0.608 / 0.606. 2 keeps the subsample well over-determined: per
+#: channel L M / 4 equations against M / 4 + L N unknowns, 1.7x there (stride 3: 1.07x).
+BOUNCE_FIRST_STRIDE = 2
+#: Joint solve: lp when not given. With one illumination per camera the albedo of each pixel can absorb the whole
+#: image, so the albedo prior is what separates them; with two or more the data separate them and a smoothness
+#: prior only blurs the albedo's edges (bench/results.md, joint ablation).
+LP_ONE_ILLUMINATION = 1e-2
+
+#: Unknown albedo, final step (objcam.solvers.plan.final): the TV albedo prior's contrast and the rounds of (albedo
+#: step, envmap step). Measured on the dots bench scene (bench/results.md; joint solve to 1e-3, TV without the
+#: regions' refit): envmap SSIM 0.638 without the TV step; contrast 0.004 / 0.006 / 0.008 / 0.012 at two rounds 0.670
+#: / 0.674 / 0.672 / 0.655 (albedo relative RMSE 0.0029 / 0.0034 / 0.0039 / 0.0052, the joint solve's 0.0031); rounds
+#: 1 / 2 / 4 at 0.008: 0.668 / 0.672 / 0.673. With the joint solve to JOINT_TOL_FINAL and FINAL_EARLY_STEPS: one
+#: round 0.667, two 0.675 (~1.2 s more); with the regions' least-squares refit (objcam.solvers.albedo_tv) 0.710,
+#: albedo 0.0021.
+ALBEDO_TV = 0.006
+FINAL_ROUNDS = 2
+#: Reweighting steps of the edge solve in the final step's rounds before the last (their envmaps only feed the next
+#: albedo step). Measured on the dots bench scene, two rounds: 6 / 2 / 1 steps, SSIM 0.6743 / 0.6750 / 0.6731, the
+#: final step 3.3 / 2.7 / 2.6 s.
+FINAL_EARLY_STEPS = 2
+
+SCALE_NOTE = ("unknown albedo: the envmap and the albedo are known only up to one scale per colour channel "
+              "(c * albedo and envmap / c fit the photos equally); the regularisers pick c, and evaluate "
+              "compares after the best-fit scale")
+
+
+SCALE_PINNED_NOTE = ("unknown albedo, with pixels of known albedo held at it: they fix the scale that c * albedo "
+                     "and envmap / c would otherwise leave free, so the envmap and the albedo are absolute")
+

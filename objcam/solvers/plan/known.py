@@ -1,0 +1,239 @@
+"""Known albedo: every target's envmap from its own photo, one exact solve per target.
+
+    min_x ||A x - y||^2 + ls ||D x||^2 + lr ||x||^2,  x >= 0,  per colour channel,
+
+solved in the Gram form on the merged envmap basis (objcam.solvers.basis). The steps, per target:
+
+1. :func:`choose_ls`: the smoothness weight (given, from the target's noise, or by an auto_reg rule);
+2. the solve: :func:`solve_known_edges` for the default edge-preserving prior (objcam.solvers.edges; with a grey
+   A the luminance from the solve at ls and the chroma from a second one at ``chroma_ls_factor`` x ls,
+   objcam.solvers.chroma, on a second thread; a supersampled A on the adaptive basis of objcam.solvers.refine), or
+   :func:`solve_known_quadratic` for the quadratic prior and the method's damped solver (one Gram matrix serves
+   every channel of a grey A and every target that shares A and its usable pixels);
+3. :func:`known_solution`: the envmap on the lat-long grid (area-averaged to the output grid for a supersampled
+   A), the predicted image and solve.json's record.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from objcam import solvers
+from objcam.envmap import EnvGrid
+from objcam.solvers.basis import merge_gram, texel_basis
+from objcam.solvers.chroma import luminance_with_chroma
+from objcam.solvers.edges import solve_edges
+from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN
+from objcam.solvers.plan.params import SolveParams
+from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, noise_ls, texel_group
+from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
+from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
+from objcam.threads import parallel_map, single_blas_thread
+
+
+def solve_known(scene, data: dict[str, TargetData], params: SolveParams,
+                names: list[str]) -> dict[str, TargetSolution]:
+    """The targets ``names`` of ``scene`` (objcam.schemas.artifacts.SceneArtifact), each solved on its own."""
+    gram_cache: dict[tuple, tuple] = {}  # shared by the targets of one camera and valid mask
+    return {name: _solve_target(scene.target(name), data[name], params, gram_cache) for name in names}
+
+
+def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) -> TargetSolution:
+    tr, use, y = d.transport, d.use, d.y
+    grid = EnvGrid(tr.env_height)
+    edges = params.prior == "edges" and params.method == "exact"
+    t0 = time.perf_counter()
+    edge_info = None
+    with single_blas_thread():
+        ls, ls_source, auto_info = choose_ls(target, d, grid, params, linear=edges)
+        if edges:
+            X, kkt, obj, iters, edge_info = solve_known_edges(tr, grid, use, y, ls, params.lr, params)
+        else:
+            X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache)
+    solve_s = time.perf_counter() - t0
+    # (channels_in_A records 0 for the edge path, as solve.json always has)
+    info = {"channels_in_A": 0 if edges else int(tr.A.shape[0]), "solve_seconds": round(solve_s, 4),
+            "iterations": int(iters), "kkt_residual_max": float(kkt.max()), "objective": obj.tolist(),
+            "ls_relative": ls, "ls_source": ls_source}
+    return known_solution(tr, grid, d, X, params, info, edge_info, auto_info)
+
+
+def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear: bool):
+    """The relative smoothness weight: params.ls, else from the target's noise (:func:`noise_ls`; ``linear``: the
+    edge prior's rule), replaced by the auto_reg rule's choice unless it is off. Returns (ls, its source, the
+    auto_reg record or None). Call with one BLAS thread."""
+    tr, use, y = d.transport, d.use, d.y
+    C = tr.A.shape[0]
+    rule = params.auto_reg if params.auto_reg != "off" else None
+    auto_info = None
+    ls, ls_source = params.ls, "param"
+    if ls is None:
+        ls, ls_source = noise_ls(target, d.pooled, d.pooled_ok, params, tr.downsample, linear=linear,
+                                 supersample=tr.env_height // tr.output_height)
+    if rule is not None:
+        # one weight for the target's channels: the criterion on the grey (channel-mean) transport
+        Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)
+        ls, _, inf = solvers.choose_weights(Ag, y[use], grid, tr.texel_index, rule=rule,
+                                            sigma=discrepancy_sigma(target, y[use], rule), lr=params.lr)
+        auto_info = {"rule": rule, "ls_relative": ls, "notes": inf["notes"], "seconds": round(inf["seconds"], 3)}
+        ls_source = f"auto_reg {rule}"
+    return ls, ls_source, auto_info
+
+
+def solve_known_quadratic(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
+                          params: SolveParams, gram_cache: dict):
+    """The quadratic prior (method exact: bound-constrained minimiser; paper: the method's damped steps), per
+    channel of A. ``gram_cache`` keeps the regularised Gram matrix per (A, channel, usable pixels, weights).
+    Returns X (N, 3), KKT residual (3,), objective (3,), iterations."""
+    C = tr.A.shape[0]
+    X, kkt, obj, iters = np.zeros((tr.A.shape[2], 3)), np.zeros(3), np.zeros(3), 0
+    grams = None
+    for c in range(C):
+        # one Gram matrix per (A, channel, usable pixels, weights): shared by every channel of a grey A
+        # and by every target that shares the camera and the valid mask
+        key = (str(tr.folder), c, hash(use.tobytes()), ls, lr)
+        Ac = tr.A[c] if use.all() else tr.A[c][use]  # a mask copies A's 16k x 1k floats
+        if key not in gram_cache:
+            # the transport stage stored A^T A over all kept pixels; remove the few excluded rows
+            grams = tr.gram() if grams is None else grams
+            G = grams[c]
+            if not use.all():
+                G = G - solvers.gram(tr.A[c][~use])
+            ls_abs, lr_abs = solvers.absolute_weights(G, ls, lr)
+            D = solvers.difference_operator(grid, tr.texel_index)
+            Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
+            P = known_basis(tr, params)
+            gram_cache[key] = (Q, None) if P is None else (merge_gram(P, Q), P)
+        Q, P = gram_cache[key]
+        chans = [0, 1, 2] if C == 1 else [c]
+        Yc = y[use][:, chans]
+        B = solvers.rhs(Ac, Yc, fast=True)
+        if P is not None:  # the same objective over x = P z: P^T Q P, P^T b (objcam.solvers.basis)
+            B = np.asarray(P.T @ B)
+        res = (solvers.solve_exact if params.method == "exact" else solvers.solve_paper)(Q, B)
+        X[:, chans] = res.x if P is None else np.asarray(P @ res.x.reshape(P.shape[1], -1))
+        kkt[chans], iters = res.kkt_residual, max(iters, res.iterations)
+        obj[chans] = solvers.objective(Q, B, res.x, np.einsum("ij,ij->j", Yc, Yc))
+    return X, kkt, obj, iters
+
+
+def known_basis(tr, params: SolveParams, split: np.ndarray | None = None):
+    """The known-albedo solve's basis P over A's texels (None: the texels): the merged basis
+    (objcam.solvers.basis), or for a supersampled A the output texels with ``split`` of them refined
+    (objcam.solvers.refine; None: none refined)."""
+    g = texel_group(params, known=True)
+    if tr.output_height == tr.env_height:
+        return texel_basis(tr.grid, tr.texel_index, g)
+    if split is None:
+        split = np.zeros(coarse_of(tr.grid, tr.texel_index, tr.output_height)[0].size, bool)
+    return refined_basis(tr.grid, tr.texel_index, tr.output_height, split, g)
+
+
+def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: SolveParams, solve: dict,
+                   edge_info: dict | None, auto_info: dict | None) -> TargetSolution:
+    """The target's envmap, prediction and solve.json from X (N, 3) on A's texels; ``solve``: the solve's own
+    record (channels_in_A, solve_seconds, iterations, kkt_residual_max, objective, ls_relative, ls_source)."""
+    use, y = d.use, d.y
+    env = tr.envmap_from_x(X)
+    mask = texel_mask(grid, tr.texel_index)
+    fine = None
+    if tr.output_height != tr.env_height:  # supersampled A: write the area average (objcam.solvers.refine)
+        fine = (env, mask)
+        env, mask = average_to(env, mask, tr.output_height)
+    pred = tr.predict(X)
+    fit = pred.reshape(-1, 3)[tr.pixel_index][use]
+    rel_res = float(np.linalg.norm(fit - y[use]) / max(np.linalg.norm(y[use]), 1e-30))
+    info = {
+        "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
+        **basis_info(tr.texel_index, known_basis(tr, params), params, known=True),
+        "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()),
+        "channels_in_A": solve["channels_in_A"], "solve_seconds": solve["solve_seconds"],
+        "iterations": solve["iterations"], "kkt_residual_max": solve["kkt_residual_max"],
+        "objective": solve["objective"], "relative_image_residual": rel_res, "ls_relative": solve["ls_relative"],
+        "lr_relative": params.lr, "ls_source": solve["ls_source"],
+        "prior": params.prior if params.method == "exact" else "smooth",
+    }
+    if edge_info is not None:
+        info["edges"] = edge_info
+    if auto_info:
+        info["auto_reg"] = auto_info
+    if fine is not None:
+        info["supersample"] = {"a_height": tr.env_height, "output_height": tr.output_height,
+                               **(edge_info.pop("refine", {}) if "edges" in info else {})}
+    return TargetSolution(env, mask, pred, info, fine=fine)
+
+
+def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
+                      params: SolveParams):
+    """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info."""
+    grams_all = tr.gram()
+    C = tr.A.shape[0]
+    grams, rhs, chans = [], [], []
+    Y = y[use]
+    for c in range(C):
+        G = grams_all[c]
+        if not use.all():
+            G = G - solvers.gram(tr.A[c][~use])
+        ch = [0, 1, 2] if C == 1 else [c]
+        grams.append(G)
+        rhs.append(solvers.rhs(tr.A[c] if use.all() else tr.A[c][use], Y[:, ch], fast=True))
+        chans.append(ch)
+    G_ref = grams[0] if C == 1 else sum(grams) / C
+    ls_abs, lr_abs = solvers.absolute_weights(G_ref, ls, lr)
+    D = solvers.difference_operator(grid, tr.texel_index)
+    eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
+    yy = np.einsum("ij,ij->j", Y, Y)
+    basis = known_basis(tr, params)
+    refine_info = None
+    if tr.output_height != tr.env_height:
+        # supersampled A (objcam.solvers.refine): a pilot quadratic solve on the output texels says where the
+        # envmap has contrast; those output texels are solved on the fine grid
+        pilot = solve_edges(grams, rhs, chans, yy, D, ls_abs, lr_abs, steps=0, basis=basis)
+        split = split_by_contrast(contrast(grid, tr.texel_index, tr.output_height, pilot.x), params.refine_fraction)
+        basis = known_basis(tr, params, split)
+        refine_info = {"refine_fraction": params.refine_fraction, "refined_output_texels": int(split.sum()),
+                       "output_texels": int(split.size), "unknowns": int(basis.shape[1])}
+    # the chroma solve (objcam.solvers.chroma) needs one A for every channel: the luminance of X is then A's own
+    split = params.chroma_ls_factor > 0 and C == 1
+    weights = [ls_abs]
+    if split:
+        weights.append(solvers.absolute_weights(G_ref, ls * params.chroma_ls_factor, lr)[0])
+
+    def one(w: float):
+        return solve_edges(grams, rhs, chans, yy, D, w, lr_abs, steps=params.edge_steps, eps_rel=eps,
+                           tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=basis)
+
+    runs = parallel_map(one, weights)  # independent solves: a thread each (the caller holds one BLAS thread)
+    res = runs[0]
+    kkt = np.zeros(3)
+    iters = 0
+    for run in runs:
+        for r, ch in zip(run.results, chans):
+            kkt[ch] = np.maximum(kkt[ch], r.kkt_residual)
+            iters += r.iterations
+    obj = np.full(3, res.objective_history[-1] / 3)
+    hist = res.objective_history
+    info = {"steps": res.steps, "objective_history": hist, "edge_scale": res.edge_scale, "edge_eps": eps,
+            "tone": res.tone, "tone_floor": params.edge_tone_floor if res.tone > 0 else None,
+            "edges_above_threshold": round(res.kept_edges, 4),
+            "monotone": non_increasing(hist)}
+    if refine_info:
+        info["refine"] = refine_info
+    X = res.x
+    if split:
+        X = luminance_with_chroma(res.x, runs[1].x)
+        hc = runs[1].objective_history
+        info["chroma"] = {"ls_factor": params.chroma_ls_factor, "steps": runs[1].steps, "objective_history": hc,
+                          "monotone": non_increasing(hc),
+                          "black_texels_per_channel_before": [int(v) for v in (res.x <= 0).sum(axis=0)],
+                          "black_texels_per_channel": [int(v) for v in (X <= 0).sum(axis=0)]}
+    elif params.chroma_ls_factor > 0:
+        info["chroma"] = {"ls_factor": params.chroma_ls_factor, "skipped": "A differs per channel"}
+    return X, kkt, obj, iters, info
+
+
+def non_increasing(history: list[float]) -> bool:
+    """An objective history that never rises (to 1e-9 relative)."""
+    return bool(all(b <= a * (1 + 1e-9) for a, b in zip(history, history[1:])))

@@ -1,0 +1,129 @@
+"""The solve's settings (the ``solve`` stage's params): one typed field per choice, each with its description.
+
+The defaults and how each was measured are in :mod:`objcam.solvers.plan.defaults`.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from objcam.solvers.plan.defaults import (
+    ALBEDO_TV,
+    BOUNCE_FIRST_STRIDE,
+    CHROMA_LS_FACTOR,
+    EDGE_EPS_JOINT,
+    EDGE_EPS_KNOWN,
+    EDGE_LS_PER_SIGMA,
+    EDGE_TONE,
+    EDGE_TONE_FLOOR,
+    FINAL_ROUNDS,
+    JOINT_TOL,
+    JOINT_TOL_FINAL,
+    LP_ONE_ILLUMINATION,
+    LS_NOISE_FACTOR,
+    REFINE_FRACTION,
+    TEXEL_GROUP_JOINT,
+    TEXEL_GROUP_KNOWN,
+)
+from objcam.solvers.regularization import DEFAULT_LR_REL
+
+
+class SolveParams(BaseModel):
+    """How the solve stage recovers the envmaps (and an unknown albedo); see objcam.solvers.plan."""
+
+    model_config = ConfigDict(extra="forbid")
+    method: Literal["exact", "paper", "adam"] = Field(
+        "exact", description="exact bound-constrained minimiser (joint: exact alternation), the method's damped "
+        "Newton steps with clipping (baseline), or Adam through Mitsuba's differentiable renderer (baseline)")
+    ls: float | None = Field(None, ge=0, description="smoothness weight, relative to mean(diag(A^T A)) (unknown "
+                             "albedo: A = diag(rho0) A' at the initial albedo, known values and 0.5); None: from "
+                             "the target's noise, ls_noise_factor x sigma^2 (unknown albedo: the median over the "
+                             "joint problem's targets); replaced by the auto_reg choice unless it is off")
+    prior: Literal["edges", "smooth"] = Field("edges", description="edge-preserving (Huber) smoothness, solved "
+                                              "exactly by reweighting (unknown albedo: inside the joint "
+                                              "alternation), or the plain quadratic "
+                                              "smoothness (one exact solve; fastest)")
+    edge_steps: int = Field(6, ge=1, le=50, description="prior=edges: most reweighting steps (6: within 0.01 of "
+                            "the SSIM of 25 on the bench's 4 HDRIs, 0.3-0.8 s for 1,088 texels)")
+    edge_eps: float | None = Field(None, gt=0, description="prior=edges: Huber threshold relative to the RMS edge "
+                                   f"(small: close to total variation); None: {EDGE_EPS_KNOWN} for a known albedo, "
+                                   f"{EDGE_EPS_JOINT} for the joint solve (bench/results.md)")
+    edge_tone: float = Field(EDGE_TONE, ge=0, le=1, description="prior=edges, known albedo: weight each edge by "
+                             "(mean / (local radiance + floor x mean))^edge_tone, so structure counts in tonemapped "
+                             "rather than linear units (objcam.solvers.edges); 0: plain Huber")
+    edge_tone_floor: float = Field(EDGE_TONE_FLOOR, gt=0, description="prior=edges: the tone weights' floor, "
+                                   "relative to the mean radiance")
+    chroma_ls_factor: float = Field(CHROMA_LS_FACTOR, ge=0, description="prior=edges, known albedo, grey A (one "
+                                    "albedo for all channels): the envmap's chroma (each channel over the channel "
+                                    "mean) comes from a second edge solve at chroma_ls_factor x ls, its luminance "
+                                    "(the channel mean) from the solve at ls (objcam.solvers.chroma: colour varies "
+                                    "more slowly than brightness, and a dark channel otherwise clips to 0 in "
+                                    "patches); 0: one solve for all channels")
+    ls_noise_factor: float | None = Field(None, gt=0, description="ls from the relative noise sigma when ls is "
+                                          "None (the target's noise_sigma, else estimated from the image): known "
+                                          "albedo with prior=edges, ls = factor x sigma (None: "
+                                          f"{EDGE_LS_PER_SIGMA:g}); otherwise (smooth, paper, the joint solve) "
+                                          f"ls = factor x sigma^2 (None: {LS_NOISE_FACTOR:g})")
+    texel_group: float | None = Field(
+        None, ge=0, description="merge each lat-long row's texels into groups spanning at most texel_group x the "
+        "equator texel's solid angle (objcam.solvers.basis: the same objective over envmaps constant on each "
+        "group, written back on the lat-long grid); 0: one unknown per texel, the method's parameterisation. "
+        f"None: {TEXEL_GROUP_KNOWN:g} for a known albedo, {TEXEL_GROUP_JOINT:.3g} for the joint solve "
+        "(bench/results.md). method=adam always optimises the texels")
+    lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
+    refine_fraction: float = Field(REFINE_FRACTION, ge=0, le=1, description="supersampled A "
+                                   "(transport.supersample > 1), known albedo: the fraction of output texels, those "
+                                   "of most contrast in a pilot solve, solved on A's finer grid "
+                                   "(objcam.solvers.refine); the rest are one unknown each")
+    lp: float | None = Field(None, ge=0, description="albedo smoothness weight (unknown albedo), relative to the "
+                             f"albedo data term; None: 0 with >= 2 illuminations per camera, {LP_ONE_ILLUMINATION} "
+                             "with one")
+    auto_reg: Literal["gcv", "discrepancy", "lcurve", "off"] = Field(
+        "off", description="rule choosing ls when ls is None (both albedo cases); off: the measured defaults "
+        "(bench/results.md: on path-traced targets every rule picked far too little smoothing)")
+    tol: float | None = Field(None, gt=0, description="joint solve: stop when the relative objective decrease per "
+                              f"sweep is below tol; None: {JOINT_TOL:g}, or {JOINT_TOL_FINAL:g} when the final step "
+                              "(final_envmap=known) follows")
+    max_iter: int = Field(100, ge=1, description="joint solve: most sweeps (paper: most damped steps)")
+    alpha: float = Field(0.5, gt=0, description="joint method=paper: damping of the envmap step (Eq. 7)")
+    mixed_pixels: Literal["exclude", "fit"] = Field(
+        "exclude", description="unknown albedo, method=exact: pixels whose footprint mixes the object and the support "
+        "(silhouettes) are left out of the joint fit: one unknown albedo times A' cannot model a mixture whose "
+        "effective albedo changes with the light (measured on the bench's dots scene: envmap SSIM 0.510 -> 0.543, "
+        "and it is what lets the bounce refit help); 'fit' keeps them")
+    bounce_refits: int = Field(1, ge=0, le=5, description="unknown albedo, method=exact: times the light the support "
+                               "throws onto the object (interreflections, gathered at a guessed albedo by transport) "
+                               "is redone from the estimated albedo and the joint solve rerun (objcam.transport."
+                               "gather.bounce_delta; A with the gather's parts only). Measured on the dots scene: "
+                               "envmap SSIM 0.543 -> 0.595, relative RMSE 0.87 -> 0.66, ~1.4x the solve time. 0: keep "
+                               "the guess")
+    first_solve_stride: int = Field(BOUNCE_FIRST_STRIDE, ge=1, le=8, description="unknown albedo with a bounce "
+                                    "refit: the solve before the refit fits one pixel in stride x stride (with "
+                                    "two or more illuminations; every pixel's albedo then follows from its least "
+                                    "squares at that solve's envmaps); 1: every pixel")
+    albedo_tv: float = Field(ALBEDO_TV, ge=0, description="unknown albedo, lp = 0, final_envmap=known: weight of the "
+                             "total-variation albedo prior of the final step, as a contrast relative to the median "
+                             "albedo (objcam.solvers.albedo_tv: variations below about it are flattened, a print's "
+                             "edges stay); 0: off")
+    final_rounds: int = Field(FINAL_ROUNDS, ge=1, le=10, description="final_envmap=known with albedo_tv: rounds of "
+                              "(the albedo's TV step at the current envmaps, every envmap at that albedo)")
+    final_envmap: Literal["known", "joint"] = Field(
+        "known", description="unknown albedo, method=exact, prior=edges: 'known' follows the joint solve with "
+        "final_rounds rounds of the albedo's TV step (albedo_tv) and every envmap at that albedo, held fixed, by "
+        "the known-albedo solver (tone-weighted edge prior, edge_eps and ls as for a known albedo; measured on the "
+        "dots bench scene: envmap SSIM 0.607 -> 0.710, 0.638 without the TV step); 'joint' keeps the joint "
+        "solve's albedo and envmaps")
+    adam_lr: float = Field(0.05, gt=0, description="method=adam: learning rate (on log radiance / logit albedo)")
+    adam_seconds: float = Field(60.0, gt=0, description="method=adam: time budget (early stopping), seconds")
+    adam_max_iter: int = Field(2000, ge=1, description="method=adam: most iterations")
+    adam_spp: int = Field(4, ge=1, description="method=adam: samples per pixel of each differentiable render")
+    adam_converge_tol: float = Field(1e-3, gt=0, description="method=adam: 'converged' when the learning rate is at "
+                                     "its floor and 50 iterations improve the objective by less than this fraction "
+                                     "(the benchmark's run to convergence uses 1e-5)")
+    adam_patience: int = Field(2, ge=1, description="method=adam: windows of 25 iterations without that improvement "
+                               "before the learning rate is halved (down to 1/16), then before it stops")
+    adam_stop_on_plateau: bool = Field(True, description="method=adam: stop where the plateau rule fires "
+                                       "('converged'); false records that time (plateau_seconds) and goes on at "
+                                       "the smallest rate until adam_seconds (the benchmark's long run)")

@@ -1,0 +1,82 @@
+"""The rules of the solve's plan: which weights and which envmap basis each solve gets.
+
+* :func:`texel_group` and :func:`basis_info`: the merged envmap basis (objcam.solvers.basis) per kind of solve;
+* :func:`noise_ls`: the smoothness weight ls from a target's noise when it is not given;
+* :func:`discrepancy_sigma`: the absolute pixel noise the discrepancy rule (auto_reg) needs.
+
+How each default was measured: :mod:`objcam.solvers.plan.defaults`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from objcam.errors import StageError
+from objcam.solvers.basis import unknowns
+from objcam.solvers.plan.defaults import (
+    EDGE_LS_PER_SIGMA,
+    EDGE_LS_PER_SIGMA_SUPERSAMPLED,
+    KNOWN_LS_REL,
+    LS_NOISE_FACTOR,
+    LS_RANGE,
+    TEXEL_GROUP_JOINT,
+    TEXEL_GROUP_KNOWN,
+)
+from objcam.solvers.plan.params import SolveParams
+
+
+def texel_group(params: SolveParams, known: bool) -> float:
+    """The envmap basis' group size (objcam.solvers.basis) for this solve: 0 (texels) for method=adam."""
+    if params.method == "adam":
+        return 0.0
+    if params.texel_group is not None:
+        return float(params.texel_group)
+    return TEXEL_GROUP_KNOWN if known else TEXEL_GROUP_JOINT
+
+
+def basis_info(texel_index: np.ndarray, P, params: SolveParams, known: bool) -> dict:
+    """solve.json's record of the envmap basis P over ``texel_index`` (objcam.solvers.basis; for a supersampled A
+    the output-texel basis before refinement: the edge solve's refined count is in ``supersample``)."""
+    return {"texel_group": texel_group(params, known), "unknowns": unknowns(texel_index, P)}
+
+
+
+def noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolveParams, f: int = 1,
+             linear: bool = False, supersample: int = 1) -> tuple[float, str]:
+    """ls from the noise of one fitted pixel (the target's relative noise_sigma, given per photo pixel, over the
+    f x f pooling; else estimated from the pooled image): ls_noise_factor x sigma^2, or x sigma when ``linear``
+    (the known-albedo edge prior), within LS_RANGE (the noise sets how much the data can be trusted against the
+    prior; measured on 128 x 128 targets, and transport's automatic pooling keeps larger photos at 8-32k fitted
+    pixels)."""
+    from objcam.transport.auto import estimate_relative_noise
+
+    sigma, source = target.noise_sigma, "noise_sigma"
+    if sigma:
+        sigma = sigma / max(int(f), 1)  # the mean of f x f independent pixels
+    else:
+        sigma, source = estimate_relative_noise(pooled, pooled_ok), "estimated noise"
+    if not sigma:
+        return KNOWN_LS_REL, "default (noise unknown)"
+    factor = params.ls_noise_factor
+    if factor is None and linear:
+        factor = EDGE_LS_PER_SIGMA if supersample == 1 else EDGE_LS_PER_SIGMA_SUPERSAMPLED
+    elif factor is None:
+        # a supersampled A (objcam.solvers.refine): mean diag(A^T A) shrinks ~s^4 and an output edge is s fine
+        # edges, so s^3 keeps the output grid's weight (derived, not tuned: the bench measures the edge prior)
+        factor = LS_NOISE_FACTOR * supersample**3
+    ls = float(np.clip(factor * (sigma if linear else sigma**2), *LS_RANGE))
+    return ls, f"{source} {sigma:.4f} per fitted pixel"
+
+
+
+def discrepancy_sigma(target, y: np.ndarray, rule: str) -> float | None:
+    """Absolute noise standard deviation of one pixel value for the discrepancy rule: the target's relative
+    ``noise_sigma`` (capture.toml) times its median positive pixel value."""
+    if rule != "discrepancy":
+        return None
+    if not target.noise_sigma:
+        raise StageError(f"auto_reg=discrepancy needs the noise level of target {target.name!r}",
+                         fix="give noise_sigma for the target in capture.toml, or use solve.auto_reg=gcv")
+    pos = y[y > 0]
+    return float(target.noise_sigma * (np.median(pos) if pos.size else 1.0))
+
