@@ -3,13 +3,17 @@ exposure bracket.
 
 - :mod:`objcam.probe.fit`: find the ball in the merged HDR image and fit its 3D centre to the silhouette
   (perspective-exact cone; the plane z = 0 fixes the distance when the ball rests on it); its last step,
-  :mod:`objcam.probe.rim`, a photometric model of the rim for balls >= 300 px in radius.
+  :mod:`objcam.probe.rim`, a photometric model of the rim for balls >= 300 px in radius; both draw the ball's
+  image outline with :mod:`objcam.probe.silhouette`.
 - :mod:`objcam.probe.exposure`: bracket checks (saturated everywhere, exposed nowhere, a dim longest frame).
 - :mod:`objcam.probe.unwrap` (``unwrap``; the function is not re-exported here, so the module name stays
   importable): the envmap (objcam's lat-long convention) by exact perspective reflection on a fine
   grid, reflectance-corrected, masked, area-averaged to the solve resolution.
 - :mod:`objcam.probe.optics`: reflection geometry and the ball's reflectance (calibration factor, Fresnel).
 - :mod:`objcam.probe.recover`: bracket checks + fit + unwrap in one call (:func:`recover_probe`).
+- :mod:`objcam.probe.measure`: the probe stage's entry point (:func:`~objcam.probe.measure.measure_probe`): the
+  ball's reflectance (:mod:`objcam.probe.ball_reflectance`), :func:`recover_probe`, saturated sources, warnings,
+  and probe.json's record; :mod:`objcam.probe.merged` reads ingest's merged bracket for it.
 - :mod:`objcam.probe.synth`: synthetic chrome-ball brackets rendered with Mitsuba (and written in the ingest
   stage's contract, :func:`~objcam.probe.synth.write_ingest_probe`).
 - :mod:`objcam.probe.sources`: sources saturated in every frame (direction, lower-bound energy).

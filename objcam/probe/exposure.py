@@ -1,7 +1,7 @@
 """Is the chrome ball's bracket exposed right? Checks on a merged bracket, each naming the frame to change.
 
-A merged bracket here is a :class:`~objcam.capture.hdr.MergeResult` or the probe stage's ``MergedProbe`` (ingest's
-``image.exr`` with ``valid.png`` and ``merge.json``): ``radiance`` (H, W, 3), ``valid`` (H, W) bool (False:
+A merged bracket here is a :class:`~objcam.capture.hdr.MergeResult` or a :class:`~objcam.probe.merged.MergedProbe`
+(ingest's ``image.exr`` with ``valid.png`` and ``merge.json``): ``radiance`` (H, W, 3), ``valid`` (H, W) bool (False:
 saturated in every frame), ``times`` (ascending, seconds), ``paths`` (same order), ``units`` ("reference": the
 longest frame's units; "per_second") and ``wb`` (white-balance multipliers in the data).
 

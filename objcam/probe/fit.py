@@ -76,6 +76,8 @@ import numpy as np
 from objcam.camera import Camera
 from objcam.errors import InputError
 from objcam.probe.optics import normalise, silhouette_rays
+from objcam.probe.rim import refine_rim
+from objcam.probe.silhouette import silhouette_px
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 MIN_SUPPORT = 0.46  # edge support a silhouette needs to count as a ball
@@ -203,17 +205,6 @@ def _focal(cam: Camera) -> float:
 
 
 # ----------------------------------------------------------------------------------------- silhouettes
-
-
-def silhouette_px(cam: Camera, centres: np.ndarray, radius: float, k: int) -> np.ndarray:
-    """(..., k, 2) image points of the silhouettes of spheres at ``centres`` (..., 3) (NaN behind the camera)."""
-    psi = 2 * np.pi * np.arange(k) / k
-    o = cam.centre
-    rays = silhouette_rays(centres, radius, o, psi)
-    cam_from_world = np.linalg.inv(cam.matrix)
-    p = rays @ cam_from_world[:3, :3].T  # directions in the camera frame
-    z = np.where(p[..., 2] > 1e-9, p[..., 2], np.nan)
-    return np.stack([cam.fx * p[..., 0] / z + cam.cx, cam.fy * p[..., 1] / z + cam.cy], -1)
 
 
 def _support(gx: np.ndarray, gy: np.ndarray, tau: float, pts: np.ndarray, ctr: np.ndarray,
@@ -700,8 +691,6 @@ def _finish(hdr, valid, logc, cam: Camera, radius: float, centre: np.ndarray, mo
     fitted too when its edges agree with the rest (a ball with no contact shadow: floating, or on a support
     that does not darken next to it); then the rim model (objcam.probe.rim) from there, kept when it moves the
     silhouette by at most ``RIM_MAX_SHIFT_PX``. Returns the fit with its edge statistics at the final centre."""
-    from objcam.probe.rim import refine_rim
-
     skip = skip_contact if mode == "plane" else 0.0
     arc = "n/a"
     if skip > 0:

@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from objcam.camera import Camera
+from objcam.probe.silhouette import silhouette_px
 
 SECTOR_PX = 8.0  # arc length of a rim sector (pixels): its coefficients are shared
 OUTSIDE_PX = 2.5  # fitted pixels: centre at most this far outside the silhouette
@@ -123,8 +124,6 @@ class _Problem:
     def __init__(self, img: np.ndarray, valid: np.ndarray | None, cam: Camera, radius: float, centre: np.ndarray,
                  plane: bool, skip_contact: float, inside_px: float, power: float):
         import cv2
-
-        from objcam.probe.fit import silhouette_px
 
         h, w = img.shape[:2]
         self.cam, self.radius, self.power = cam, radius, power

@@ -1,8 +1,9 @@
 """Stage ``probe``: chrome-ball HDR ground truth (issue 5).
 
 Applies when the capture lists ``[[probes]]``. Per probe it reads ingest's merged bracket
-(``ingest/probes/<name>/image.exr``, ``valid.png``, ``merge.json``) and the camera that took it (the manifest's
-``camera`` file, else sfm's ``cameras/probes/<name>.json``), then (objcam.probe.recover):
+(``ingest/probes/<name>/image.exr``, ``valid.png``, ``merge.json``: objcam.probe.merged) and the camera that took
+it (the manifest's ``camera`` file, else sfm's ``cameras/probes/<name>.json``), then
+(:func:`objcam.probe.measure.measure_probe`, through objcam.probe.recover):
 
 1. checks the bracket (objcam.probe.exposure; most of the image or of the ball saturated in every frame: an error
    naming the shortest frame; most of it without signal in any frame: an error naming the longest; a longest
@@ -43,13 +44,10 @@ and ``probes.json`` (index: name -> illumination, valid fraction, lower bound), 
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from objcam.camera import Camera
@@ -62,9 +60,9 @@ DEPS: tuple[str, ...] = ("ingest",)
 OPTIONAL_DEPS: tuple[str, ...] = ("sfm",)
 VERSION = "1"
 APPLIES_WHEN = "the capture lists [[probes]]"
+# the code whose changes invalidate cached probe artifacts: all of the measurement lives in objcam.probe
 CODE_DEPS = ("objcam.probe",)
-
-CHROMIUM = "chromium's measured optical constants (Mitsuba 'Cr'; normal-incidence reflectance 0.69, 0.65, 0.69)"
+STEPS = ("load", "fit", "unwrap", "downsample", "write")  # per probe, on the progress bar and in probe.json
 
 
 def applies(capture: Path) -> bool:
@@ -115,56 +113,8 @@ def input_files(capture: Path) -> list[Path]:
     return files
 
 
-@dataclass
-class MergedProbe:
-    """Ingest's merged bracket as objcam.probe.recover reads a MergeResult: radiance (H, W, 3) float32, valid
-    (H, W) bool (False: saturated in every frame), frames and exposure times ascending (from merge.json; the
-    error messages name them), units ("per_second" for raw/TIFF/EXR brackets; "relative" for JPEG brackets,
-    whose levels the exposure checks cannot recover) and the white balance in the data (merge.json's
-    ``white_balance``, else none)."""
-
-    radiance: np.ndarray
-    valid: np.ndarray
-    paths: tuple[Path, ...] = ()
-    times: tuple[float, ...] = ()
-    info: dict = field(default_factory=dict)
-    units: str = "per_second"
-    wb: np.ndarray | None = None
-    n_fallback: int | None = None  # pixels with no usable frame (merge.json), for the bracket checks
-
-
-def _merge_info(path: Path, capture: Path, folder: str) -> tuple[tuple[Path, ...], tuple[float, ...], dict]:
-    """Frames and exposure times (ascending) from ingest's merge.json (``frames``: file names in the capture's
-    ``folder``, ``exposure_times_s``; records or a ``times`` list are accepted too). Empty when absent."""
-    if not path.is_file():
-        return (), (), {}
-    try:
-        info = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise InputError("merge.json is not valid JSON", path, "rerun the ingest stage") from None
-    if not isinstance(info, dict):
-        return (), (), {}
-    base = capture / str(info.get("folder") or folder)
-    frames = info.get("frames", []) or []
-    times = [float(t) for t in (info.get("exposure_times_s") or info.get("times") or [])]
-    paths: list[Path] = []
-    for f in frames:
-        if isinstance(f, dict):
-            name = f.get("path") or f.get("source") or f.get("file") or f.get("name")
-            t = f.get("time_s", f.get("time"))
-            if t is not None and len(times) < len(frames):
-                times.append(float(t))
-        else:
-            name = f
-        if name is not None:
-            paths.append(base / Path(str(name)).name)
-    if len(times) != len(paths) or not paths:
-        return tuple(paths), (), info
-    order = np.argsort(times, kind="stable")
-    return tuple(paths[i] for i in order), tuple(float(times[i]) for i in order), info
-
-
 def _camera(spec: ProbeSpec, capture: Path, upstream: dict[str, Path]) -> tuple[Camera, str, Path]:
+    """The camera of probe ``spec``'s photo, where it came from ("manifest" or "sfm") and its file."""
     if spec.camera is not None:
         path = capture / spec.camera
         return Camera.load(path), "manifest", path
@@ -180,63 +130,6 @@ def _camera(spec: ProbeSpec, capture: Path, upstream: dict[str, Path]) -> tuple[
                      "motion to pose it")
 
 
-def _load_merged(spec: ProbeSpec, capture: Path, upstream: dict[str, Path], cam: Camera) -> MergedProbe:
-    import cv2
-
-    from objcam.image_io import read_exr
-
-    folder = upstream["ingest"] / "probes" / spec.name
-    img_path = folder / "image.exr"
-    if not img_path.is_file():
-        raise InputError(f"ingest wrote no merged image for probe {spec.name!r}", img_path,
-                         f"check that {spec.folder} holds the ball's photos and rerun the ingest stage")
-    img = read_exr(img_path)
-    h, w = img.shape[:2]
-    if (w, h) != (cam.width, cam.height):
-        raise InputError(f"probe image is {w}x{h} but its camera says {cam.width}x{cam.height}", img_path,
-                         "give the camera of this photo (at the merged image's size)")
-    rgb = img[..., :3] if img.shape[2] >= 3 else np.repeat(img[..., :1], 3, axis=2)
-    if not np.isfinite(rgb).all():
-        raise InputError(f"probe image has {int((~np.isfinite(rgb)).any(axis=2).sum())} NaN or infinite pixels",
-                         img_path, "rerun the ingest stage")
-    valid = np.ones((h, w), bool)
-    vpath = folder / "valid.png"
-    if vpath.is_file():
-        v = cv2.imread(str(vpath), cv2.IMREAD_UNCHANGED)
-        if v is None or v.shape[:2] != (h, w):
-            raise InputError("valid.png is unreadable or not the image's size", vpath, "rerun the ingest stage")
-        valid = (v.reshape(h, w, -1) > 127).any(axis=2)
-    paths, times, info = _merge_info(folder / "merge.json", capture, spec.folder)
-    if not paths:  # no frame list: errors name the merged image
-        paths, times = (img_path,), ()
-    relative = "opencv" in str(info.get("reader", "")).lower() or info.get("units", "per_second") != "per_second"
-    wb = info.get("white_balance")
-    wb = np.asarray(wb, np.float32) if isinstance(wb, list) and len(wb) == 3 else None
-    n_fb = info.get("n_fallback")
-    return MergedProbe(np.ascontiguousarray(np.maximum(rgb, 0), np.float32), valid, paths, times, info,
-                       "relative" if relative else "per_second", wb, int(n_fb) if isinstance(n_fb, int) else None)
-
-
-def _reflectance(spec: ProbeSpec, params: Params):
-    from objcam.probe.optics import Reflectance
-
-    if spec.reflectance is not None:
-        value, source = spec.reflectance, "manifest (capture.toml [[probes]] reflectance)"
-    elif params.default_reflectance is not None:
-        value, source = params.default_reflectance, "probe.default_reflectance"
-    else:
-        value, source = None, "default: " + CHROMIUM
-    if value is None and params.fresnel != "conductor":
-        value = tuple(float(x) for x in Reflectance(None, "conductor").f0())  # chromium's F0 with another shape
-    refl = Reflectance(value, params.fresnel)
-    note = {"conductor": "Fresnel: chromium's conductor curve"
-                         + (" remapped to the given normal-incidence value" if value is not None else "")
-                         + " (flat to ~40 deg, a dip near 75 deg, 1 at grazing)",
-            "schlick": "Fresnel: Schlick's approximation (no conductor dip; up to 0.19 high near 80 deg)",
-            "none": "no Fresnel: constant reflectance at every incidence angle"}[params.fresnel]
-    return refl, dict(refl.to_dict(), source=source, f0=refl.f0().tolist(), note=note)
-
-
 class _NoBar:
     def update(self, n: int = 1) -> None:
         pass
@@ -248,78 +141,53 @@ class _NoBar:
         pass
 
 
-def _one(spec: ProbeSpec, capture: Path, inputs: StageInputs, params: Params, pb) -> dict:
-    from objcam.probe.artifact import write_ball_png, write_probe
-    from objcam.probe.fit import silhouette_px
-    from objcam.probe.recover import recover_probe
-    from objcam.probe.sources import LOWER_BOUND_LABEL, saturated_sources
+class _Steps:
+    """One probe's progress: each step's name on the bar as it starts (the first, "load", at creation), and the
+    seconds each took (probe.json ``seconds``)."""
 
-    t0 = time.perf_counter()
-    cam, cam_source, cam_path = _camera(spec, capture, inputs.upstream)
-    merged = _load_merged(spec, capture, inputs.upstream, cam)
-    refl, refl_rec = _reflectance(spec, params)
-    radius = spec.diameter / 2
-    source = merged.paths[-1]  # the longest frame (or the merged image): what fit errors name
-    times: dict[str, float] = {}
-    mark = [t0, "load"]
+    def __init__(self, pb, probe: str):
+        self.pb, self.probe = pb, probe
+        self.t0 = self.mark = time.perf_counter()
+        self.current = STEPS[0]
+        self.seconds: dict[str, float] = {}
 
-    def step(name: str) -> None:
+    def start(self, name: str) -> None:
         now = time.perf_counter()
-        times[mark[1]] = round(now - mark[0], 3)
-        mark[:] = [now, name]
-        pb.set_postfix_str(f"{spec.name}: {name}")
-        pb.update(1)
+        self.seconds[self.current] = round(now - self.mark, 3)
+        self.mark, self.current = now, name
+        self.pb.set_postfix_str(f"{self.probe}: {name}")
+        self.pb.update(1)
 
-    res = recover_probe(merged, cam, radius, known_centre=spec.centre, rests_on_plane=spec.centre is None,
-                        height=params.height, solve_height=params.env_height, reflectance=refl,
-                        max_incidence_deg=params.max_incidence_deg, camera_cone_deg=params.camera_cone_deg,
-                        min_valid_fraction=params.min_valid_fraction, interpolation=params.interpolation,
-                        source=source, on_step=step, use_rim=params.rim, contact_arc=params.contact_arc)
-    step("write")
-    fit, probe = res.fit, res.probe
-    sources = saturated_sources(probe)
-    ball_sat_px = int(round(res.ball_saturated_fraction * np.pi * fit.apparent_radius_px ** 2))
-    warnings = list(res.warnings)
-    if res.lower_bound:
-        warnings.append(f"{len(sources)} source(s) saturated in every frame of the bracket: their texels are "
-                        "invalid and their energy is a lower bound")
-    rec = {
-        "name": spec.name, "illumination": spec.illumination_name, "folder": spec.folder,
-        "source": str(source), "camera": {"source": cam_source, "file": str(cam_path)},
-        "diameter": spec.diameter,
-        "centre_source": "manifest" if spec.centre is not None else "fitted on the plane z = 0 (centre at z = radius)",
-        "fit": fit.to_dict(),
-        "reflectance": refl_rec,
-        "fine": dict(probe.summary(), height=int(probe.flags.shape[0])),
-        "env_height": params.env_height, "min_valid_fraction": params.min_valid_fraction,
-        "valid_texels": int(res.valid.sum()),
-        "valid_fraction_solid_angle": _valid_fraction(res.valid),
-        "masks": {"max_incidence_deg": params.max_incidence_deg, "camera_cone_deg": params.camera_cone_deg},
-        "saturation": {"ball_saturated_fraction": res.ball_saturated_fraction, "ball_saturated_pixels": ball_sat_px,
-                       "lower_bound": res.lower_bound, "saturated_texels": int(res.saturated.sum()),
-                       "sources": sources, "label": LOWER_BOUND_LABEL if res.lower_bound else None},
-        "units": "radiance in the units of ingest's image.exr (exposure-normalised), divided by the ball's "
-                 "reflectance",
-        "merge": {"frames": [str(p) for p in merged.paths], "times": list(merged.times)},
-        "interpolation": params.interpolation,
-        "warnings": warnings,
-    }
+    def totals(self) -> dict[str, float]:
+        """The seconds of every step so far, the current one included, and their ``total``."""
+        self.seconds[self.current] = round(time.perf_counter() - self.mark, 3)
+        return dict(self.seconds, total=round(time.perf_counter() - self.t0, 3))
+
+
+def _one(spec: ProbeSpec, capture: Path, inputs: StageInputs, params: Params, pb) -> dict:
+    """Read probe ``spec``'s camera and merged bracket, measure it, write its folder; returns its probe.json
+    record."""
+    from objcam.probe.artifact import write_ball_png, write_probe
+    from objcam.probe.measure import ProbeSettings, measure_probe
+    from objcam.probe.merged import read_merged_probe
+    from objcam.probe.silhouette import silhouette_px
+
+    steps = _Steps(pb, spec.name)
+    cam, cam_source, cam_path = _camera(spec, capture, inputs.upstream)
+    merged = read_merged_probe(inputs.upstream["ingest"] / "probes" / spec.name, capture, spec.name, spec.folder,
+                               cam)
+    m = measure_probe(merged, cam, spec, ProbeSettings(**params.model_dump()), on_step=steps.start)
+    steps.start("write")
+    rec = m.record(camera={"source": cam_source, "file": str(cam_path)})
+    res, fit = m.result, m.result.fit
     folder = inputs.out / spec.name
     folder.mkdir(parents=True, exist_ok=True)
-    sil = silhouette_px(cam, fit.centre_world, radius, 720)
+    sil = silhouette_px(cam, fit.centre_world, spec.diameter / 2, 720)
     write_ball_png(folder / "ball.png", merged.radiance, sil, fit.centre_px, fit.apparent_radius_px)
-    times[mark[1]] = round(time.perf_counter() - mark[0], 3)
-    rec["seconds"] = dict(times, total=round(time.perf_counter() - t0, 3))  # all but writing the maps
-    write_probe(folder, probe.envmap, probe.flags, res.envmap, res.valid, res.saturated, rec)
+    rec["seconds"] = steps.totals()  # all but writing the maps
+    write_probe(folder, res.probe.envmap, res.probe.flags, res.envmap, res.valid, res.saturated, rec)
     pb.update(1)
     return rec
-
-
-def _valid_fraction(valid: np.ndarray) -> float:
-    from objcam.envmap import EnvGrid
-
-    w = EnvGrid(valid.shape[0]).solid_angles()
-    return float((w * valid).sum() / w.sum())
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
@@ -334,8 +202,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     if "ingest" not in inputs.upstream:
         raise InputError("the probe stage needs the ingest stage's merged images", capture / "capture.toml",
                          "run the ingest stage first")
-    steps = 5  # load, fit, unwrap, downsample, write
-    pb = _NoBar() if inputs.quiet else bar(total=steps * len(manifest.probes), desc="probe", unit="step")
+    pb = _NoBar() if inputs.quiet else bar(total=len(STEPS) * len(manifest.probes), desc="probe", unit="step")
     records = {}
     try:
         for spec in manifest.probes:
