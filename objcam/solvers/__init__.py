@@ -5,6 +5,7 @@
 - :mod:`.paper`: :func:`solve_paper`, the paper's damped clipped Newton iteration (baseline).
 - :mod:`.problem`: :func:`solve_envmap`, from (A, Y) to x in one call.
 - :mod:`.basis`: the merged envmap basis (texels of a lat-long row joined near the poles) the solve stage uses.
+- :mod:`.joint`: :func:`solve_joint`, the albedo and the envmaps together when the albedo is unknown.
 """
 
 from objcam.solvers.autoreg import choose_weights

@@ -35,7 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from objcam.solvers.joint import DEFAULT_RHO_MIN, _albedo_normal, _matmul
+from objcam.solvers.joint.albedo import albedo_normal
+from objcam.solvers.joint.blocks import DEFAULT_RHO_MIN
+from objcam.solvers.joint.kernels import matmul
 
 
 @dataclass
@@ -164,12 +166,12 @@ def tv_albedo(A: np.ndarray, Y: np.ndarray, X: np.ndarray, rho_prev: np.ndarray,
     contrast: the prior's weight as a fraction of the median albedo (lam above); warm: a previous result for the
     same camera (its rho and dual start the iteration). refit: TV picks the regions, least squares their values
     (module docstring)."""
-    S = _matmul(A, X.reshape(X.shape[0], -1)).reshape(Y.shape)
+    S = matmul(A, X.reshape(X.shape[0], -1)).reshape(Y.shape)
     C = Y.shape[2]
     w = np.empty(rho_prev.shape)
     f = np.empty(rho_prev.shape)
     for c in range(C):
-        a, beta = _albedo_normal(S[:, :, c], Y[:, :, c], rho_prev[:, c])
+        a, beta = albedo_normal(S[:, :, c], Y[:, :, c], rho_prev[:, c])
         w[:, c], f[:, c] = a, beta / a
     free = ~np.asarray(fixed, bool)
     f[~free] = rho_prev[~free]

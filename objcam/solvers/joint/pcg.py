@@ -1,6 +1,6 @@
 """Exact non-negative x-steps of the joint solve without forming their Gram matrices.
 
-The x-step of :mod:`objcam.solvers.joint` solves, for every target l and colour channel c,
+The x-step of the joint solve (:mod:`objcam.solvers.joint.x_step`) solves, for every target l and colour channel c,
 
     min 0.5 x^T Q x - b^T x,  x >= 0,   Q = sum_p A'_p^T diag(w_pc) A'_p + R_l,   w_pc = rho_pc^2,
 
@@ -29,23 +29,21 @@ from typing import Callable
 import numpy as np
 from scipy.linalg import cho_solve
 
+from objcam.solvers.joint.kernels import chol
+
 __all__ = ["PCGResult", "solve_nnls_pcg"]
 
 
 @dataclass
 class PCGResult:
+    """Result of :func:`solve_nnls_pcg`, one column k per right-hand side."""
+
     x: np.ndarray  # (N, K)
     kkt_residual: np.ndarray  # (K,)
     rounds: int  # pivoting rounds (1: the warm-started free set was right)
     cg_iterations: int  # operator applications in total
     factorizations: int
     converged: bool
-
-
-def _chol(S: np.ndarray):
-    from objcam.solvers.joint import _chol as chol
-
-    return chol(S)[0]
 
 
 def solve_nnls_pcg(apply_Q: Callable[[np.ndarray, np.ndarray], np.ndarray], diag_Q: np.ndarray,
@@ -79,7 +77,7 @@ def solve_nnls_pcg(apply_Q: Callable[[np.ndarray, np.ndarray], np.ndarray], diag
         if f is None:
             idx = np.flatnonzero(F[:, k])
             P = precond[int(group[k])]
-            f = (idx, _chol(P[np.ix_(idx, idx)]) if idx.size else None)
+            f = (idx, chol(P[np.ix_(idx, idx)])[0] if idx.size else None)
             facs[key] = f
             nfac += 1
         return f
