@@ -1,6 +1,6 @@
 """Accuracy benchmark of the capture front end on a synthetic ring of views (run by hand, not by the tests):
 
-    python -m objcam.sfm.bench OUT_DIR [--views 24] [--width 800] [--height 600] [--spp 32] [--known-intrinsics]
+    python -m bench.sfm_bench OUT_DIR [--views 24] [--width 800] [--height 600] [--spp 32] [--known-intrinsics]
 
 Renders the ring (``objcam.synth_views``) into OUT_DIR/views with the true cameras in OUT_DIR/truth (reused when
 present), runs :func:`objcam.sfm.frontend.estimate_cameras` on the views, and prints the camera errors against the
