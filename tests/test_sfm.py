@@ -16,7 +16,7 @@ from objcam.errors import InputError
 from objcam.sfm.align import Similarity, camera_difference, objcam_camera, pnp_camera, umeyama
 from objcam.sfm.board import (BoardSpec, board_points_world, board_texture, detect, read_display_image,
                               valid_corner_ids, world_points_array)
-from objcam.synth_views import ViewRingParams, render_views
+from objcam.synth.views import ViewRingParams, render_views
 
 SMALL = dict(n_views=11, width=320, height=240, spp=16, max_depth=2, distance=0.5, fov_deg=60.0,
              elevations_deg=[35.0, 55.0])

@@ -10,11 +10,12 @@ exposure bracket.
   grid, reflectance-corrected, masked, area-averaged to the solve resolution.
 - :mod:`objcam.probe.optics`: reflection geometry and the ball's reflectance (calibration factor, Fresnel).
 - :mod:`objcam.probe.recover`: bracket checks + fit + unwrap in one call (:func:`recover_probe`).
-- :mod:`objcam.probe.synth`: synthetic chrome-ball brackets rendered with Mitsuba (and written in the ingest
-  stage's contract, :func:`~objcam.probe.synth.write_ingest_probe`).
 - :mod:`objcam.probe.sources`: sources saturated in every frame (direction, lower-bound energy).
 - :mod:`objcam.probe.artifact`: the probe stage's files (objcam/stages/probe.py writes them);
   :mod:`objcam.probe.truth`: :func:`~objcam.probe.truth.probe_truth`, the probe as evaluate's ground truth.
+
+Synthetic chrome-ball brackets rendered with Mitsuba (and written in the ingest stage's contract,
+:func:`~objcam.synth.probe.write_ingest_probe`) are made by :mod:`objcam.synth.probe`.
 
 Measured accuracy, bilinear sampling (the unwrap now samples bicubically: less blur, see
 :mod:`objcam.probe.unwrap`; the probe stage's numbers are in bench/results.md, ``## Chrome-ball probe (issue 5)``)
