@@ -2,7 +2,7 @@
 
 One small photographed capture (12 views at 256 x 192, 16 spp, direct light, cameras perturbed by SfM-sized
 errors; the known bunny given in millimetres, y up, yawed) is rendered once per session in the ingest/sfm
-contract format (objcam.geometry.synthetic) and shared with tests/test_texture.py.
+contract format (objcam.synth.geometry_inputs) and shared with tests/test_texture.py.
 """
 
 from __future__ import annotations

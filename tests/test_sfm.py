@@ -167,7 +167,7 @@ def test_frontend_small_capture(frontend_run):
     d = np.array([camera_difference(result.views[k], truth[k]) for k in truth])
     centre_mm, rot_deg = d[:, 0] * 1000, d[:, 1]
     # 320 x 240 at 16 spp: board corners ~0.2-0.3 px, so ~1-2 mm and ~0.2 degree (measured 1.6 mm / 2.9 mm max,
-    # 0.18 / 0.33 degree; at 24 views 800 x 600, 32 spp: 0.24 mm, 0.02 degree: python -m objcam.sfm.bench)
+    # 0.18 / 0.33 degree; at 24 views 800 x 600, 32 spp: 0.24 mm, 0.02 degree: python -m bench.sfm_bench)
     assert centre_mm.mean() < 2.5 and centre_mm.max() < 6.0, centre_mm
     assert rot_deg.mean() < 0.3 and rot_deg.max() < 0.7, rot_deg
     k = next(iter(truth))
