@@ -2,8 +2,8 @@
 
 (a) unknown albedo: the bunny on a 'dots' support whose albedo is not given, 3 targets = the forest HDRI rotated by
     0/120/240 degrees, one 128 x 128 camera, 32 x 64 envmap; targets with global illumination, rendered with the
-    low-noise 'split' estimator when objcam.synth has it (stratified direct light + path-traced indirect,
-    objcam.render_split) plus 0.1% camera noise; A by transport model=auto (direct + indirect).
+    low-noise 'split' estimator when objcam.synth.capture has it (stratified direct light + path-traced
+    indirect, objcam.synth.split_render) plus 0.1% camera noise; A by transport model=auto (direct + indirect).
 (b) known albedo: one real HDRI (forest) on the bench's grey plane (bench/run.py's target, same estimator).
 
 Rows: plain least squares (x >= 0, no regularisation), + L2, + L2 + smoothness (quadratic, the default weight),
@@ -55,7 +55,7 @@ def load() -> str:
 
 
 def estimator() -> str:
-    from objcam.synth import SynthParams
+    from objcam.synth.capture import SynthParams
 
     return "split" if "estimator" in SynthParams.model_fields else "path"
 
@@ -64,7 +64,7 @@ def estimator() -> str:
 
 
 def unknown_scene(quick: bool) -> Path:
-    from objcam.synth import SynthParams, synthesize
+    from objcam.synth.capture import SynthParams, synthesize
 
     est = estimator()
     # split targets: indirect part at 4096 spp (~0.15% render noise), so the 0.1% camera noise is of its order

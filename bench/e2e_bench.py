@@ -75,7 +75,7 @@ def hdri_merge(name: str, stop: float, noisy: bool, frames: int = 5, seed: int =
     from objcam.capture.dng import NoiseModel, synth_bracket
     from objcam.capture.hdr import merge_raw_bracket
     from objcam.envmap import area_downsample
-    from objcam.synth import load_bundled_envmap
+    from objcam.synth.assets import load_bundled_envmap
 
     env = load_bundled_envmap(name).astype(np.float64)
     lum = env.max(axis=2)
@@ -147,7 +147,7 @@ def capture_merges(cap: Path, work: Path) -> dict:
 
 def full_capture(out: Path, overrides: dict | None = None) -> tuple[Path, dict]:
     """The synthetic photographed capture (rendered once per parameter set): (capture folder, render record)."""
-    from objcam.synth_full import FullSynthParams, synthesize_full
+    from objcam.synth.full import FullSynthParams, synthesize_full
 
     params = FullSynthParams(**(E2E_FULL | (overrides or {})))
     key = hashlib.sha256(params.model_dump_json().encode()).hexdigest()[:10]
@@ -171,7 +171,7 @@ def derived_capture(full: Path, dest: Path, albedo_known: bool, probe: bool) -> 
     ``[[probes]]`` or none) and truth.json's flags to match."""
     import tempfile
 
-    from objcam.synth_full import FullSynthParams, _write_manifest, target_names
+    from objcam.synth.full import FullSynthParams, _write_manifest, target_names
 
     truth = json.loads((full / "truth" / "truth.json").read_text())
     params = FullSynthParams(**(truth["params"] | {"albedo_known": albedo_known,
@@ -224,7 +224,7 @@ def known_capture(full: Path, work_raws: Path, dest: Path) -> Path:
     """The known-geometry twin of the photographed capture ``full`` (module doc, step 4), rebuilt when its sources
     changed. Needs ``work_raws/ingest`` (the merged target the from-raws run fits)."""
     from objcam.schemas.capture import CaptureManifest
-    from objcam.synth import _toml_value
+    from objcam.synth.capture import _toml_value
 
     m = CaptureManifest.load(full)
     truth = json.loads((full / "truth" / "truth.json").read_text())

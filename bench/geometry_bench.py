@@ -4,7 +4,7 @@
                                              [--out DIR]
 
 Renders (once; cached under ``--out`` by its parameters; ~30 min on 2 busy cores) the default ring of
-objcam.synth_views (the 8 cm bunny on the A3 board under ``forest``, 24 views at 800 x 600 on rings at 30 and 50
+objcam.synth.views (the 8 cm bunny on the A3 board under ``forest``, 24 views at 800 x 600 on rings at 30 and 50
 degrees elevation, 32 spp) as linear views with cameras perturbed by SfM-sized
 errors (0.2 mm, 0.02 deg) and sparse board points (0.15 mm noise, 3% outliers), then runs the geometry stage
 twice (known shape given in mm, y up, yawed: registered; and no shape: reconstructed) and the texture stage,
@@ -31,7 +31,7 @@ def _load() -> float:
 
 
 def _inputs(out: Path, params):
-    from objcam.geometry.synthetic import SyntheticInputs, write_inputs
+    from objcam.synth.geometry_inputs import SyntheticInputs, write_inputs
 
     key = hashlib.sha256(params.model_dump_json().encode()).hexdigest()[:12]
     root = out / f"inputs_{key}"
@@ -56,10 +56,10 @@ def _stage(mod, capture, upstream, out: Path, params=None):
 
 def main(argv: list[str] | None = None) -> int:
     from objcam.geometry.chamfer import chamfer
-    from objcam.geometry.synthetic import albedo_error
     from objcam.scene import MeshData, load_mesh
     from objcam.stages import geometry, texture
-    from objcam.synth_views import ViewRingParams
+    from objcam.synth.geometry_inputs import albedo_error
+    from objcam.synth.views import ViewRingParams
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spp", type=int, default=32)

@@ -2,7 +2,7 @@
 
 Per HDRI: a 5 cm chromium ball (Mitsuba "Cr") resting where z = 0 would be, seen from 35 cm at 25 deg elevation,
 a little off-axis, rendered at ``--size`` px with the ball ``--ball-px`` across (``--spp`` samples per pixel),
-turned into an exposure bracket with shot and read noise (objcam.probe.synth.make_bracket), written in the ingest
+turned into an exposure bracket with shot and read noise (objcam.synth.probe.make_bracket), written in the ingest
 stage's contract into a temporary capture, and run through the stage's ``run()``: ball fitted on the plane,
 unwrapped, area-averaged to 32 x 64. Against the rendered envmap (box texels, area-averaged the same way):
 
@@ -56,8 +56,8 @@ def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_
     from objcam.metrics import brightest_angle_deg, luminance, relative_rmse
     from objcam.pipeline.stage import StageInputs
     from objcam.probe.artifact import read_uint8
-    from objcam.probe.synth import make_bracket, render_probe, write_ingest_probe
     from objcam.stages import probe as stage
+    from objcam.synth.probe import make_bracket, render_probe, write_ingest_probe
 
     t0 = time.perf_counter()
     r = render_probe(env, radius=R, size=size, ball_px=ball_px, spp=spp, seed=seed, elevation_deg=25.0,

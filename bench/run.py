@@ -59,8 +59,8 @@ def synth_targets(out: Path, hdris, spp: int, size: int, noise_rel: float, estim
     """Render each HDRI's target (cached by its parameters) and assemble one capture with all of them.
 
     estimator 'split' renders direct light by stratified quadrature and only the indirect part by path tracing
-    (objcam.render_split): ~0.1% render noise instead of ~1-2% at 2048 spp, so the camera's 0.1% dominates."""
-    from objcam.synth import SynthParams, synthesize
+    (objcam.synth.split_render): ~0.1% render noise instead of ~1-2% at 2048 spp, so the camera's 0.1% dominates."""
+    from objcam.synth.capture import SynthParams, synthesize
 
     capture = out / "capture"
     params_key = json.dumps({"hdris": list(hdris), "spp": spp, "size": size, "noise": noise_rel}
@@ -277,7 +277,7 @@ def render_markdown(a_rows, rows, hdris, target_spp, ref, args) -> str:
              f"{' --quick' if args.quick else ''} on {time.strftime('%Y-%m-%d')}.", "",
              "Scene: the bundled bunny (8 cm) on a grey plane (albedo 0.5, bunny 0.6), one 128 x 128 camera, "
              "32 x 64 envmap. Targets: "
-             + (f"global illumination, direct light by stratified quadrature (objcam.render_split) plus the "
+             + (f"global illumination, direct light by stratified quadrature (objcam.synth.split_render) plus the "
                 f"indirect part path-traced at {target_spp} spp" if args.estimator == "split" else
                 f"path-traced with global illumination at {target_spp} spp")
              + " plus 0.1% camera noise, one per HDRI.", "",

@@ -90,7 +90,7 @@ def make_bunny() -> None:
     v[:, :2] -= (lo[:2] + hi[:2]) / 2
     v[:, 2] -= lo[2]
     v /= hi[2] - lo[2]
-    from objcam.synth import write_ply
+    from objcam.synth.assets import write_ply
 
     write_ply(ASSETS / "bunny.ply", v.astype(np.float32), f)
     (ASSETS / "bunny.ply").chmod(0o644)

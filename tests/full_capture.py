@@ -18,7 +18,7 @@ SMALL_FULL = dict(n_views=10, width=320, height=240, view_spp=16, target_spp=16,
 
 def small_full_capture(tmp_path_factory) -> Path:
     """The shared capture folder (rendered on first use; never modified by the tests: stages run with --work)."""
-    from objcam.synth_full import FullSynthParams, synthesize_full
+    from objcam.synth.full import FullSynthParams, synthesize_full
 
     root = tmp_path_factory.getbasetemp() / "small_full_capture"
     root.mkdir(exist_ok=True)

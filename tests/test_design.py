@@ -18,7 +18,7 @@ from objcam.design.scene import build_transport, design_camera, reference_scale
 from objcam.image_io import read_exr
 from objcam.pipeline.cli import main
 from objcam.scene import MeshData
-from objcam.synth import icosphere, write_ply
+from objcam.synth.assets import icosphere, write_ply
 from tests.test_report import check_page
 
 SMALL = ["--image-size", "64", "--env-height", "16"]

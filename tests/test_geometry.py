@@ -2,7 +2,7 @@
 
 One small photographed capture (12 views at 256 x 192, 16 spp, direct light, cameras perturbed by SfM-sized
 errors; the known bunny given in millimetres, y up, yawed) is rendered once per session in the ingest/sfm
-contract format (objcam.geometry.synthetic) and shared with tests/test_texture.py.
+contract format (objcam.synth.geometry_inputs) and shared with tests/test_texture.py.
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from objcam.errors import InputError
-from objcam.geometry.synthetic import write_inputs
 from objcam.pipeline.stage import StageInputs
 from objcam.scene import MeshData, load_mesh
-from objcam.synth_views import ViewRingParams
+from objcam.synth.geometry_inputs import write_inputs
+from objcam.synth.views import ViewRingParams
 
 SMALL = dict(n_views=12, width=256, height=192, spp=16, max_depth=2, distance=0.3, fov_deg=50.0,
              elevations_deg=[30.0, 50.0])
@@ -144,7 +144,7 @@ def test_surface_nets_sphere():
 
 def test_unit_detection_and_implausible_model():
     from objcam.geometry.register import detect_unit
-    from objcam.synth import icosphere
+    from objcam.synth.assets import icosphere
 
     v, f = icosphere(2)
     hull = MeshData((v * 0.05).astype(np.float32), f.astype(np.uint32))
@@ -157,7 +157,7 @@ def test_unit_detection_and_implausible_model():
 
 def test_chamfer_of_offset_sphere():
     from objcam.geometry.chamfer import chamfer
-    from objcam.synth import icosphere
+    from objcam.synth.assets import icosphere
 
     v, f = icosphere(4)
     a = MeshData((v * 0.05).astype(np.float32), f.astype(np.uint32))
@@ -212,7 +212,7 @@ def _run_geometry(capture, upstream, out, **params):
 
 
 def test_empty_and_non_manifold_meshes_refused(photo_capture, tmp_path):
-    from objcam.synth import write_ply
+    from objcam.synth.assets import write_ply
 
     up = {"ingest": photo_capture.ingest, "sfm": photo_capture.sfm}
     cap = tmp_path / "capture"
@@ -256,7 +256,7 @@ def test_wrong_shape_refused(geometry_run, photo_capture):
     from objcam.geometry.register import RegisterParams, apply, register, with_silhouette_fit
     from objcam.geometry.silfit import fit
     from objcam.geometry.views import load_views
-    from objcam.synth import icosphere
+    from objcam.synth.assets import icosphere
 
     out, _ = geometry_run
     hull = MeshData.load_npz(out / "hull.npz")

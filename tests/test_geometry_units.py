@@ -22,7 +22,7 @@ def test_signed_distance_zero_on_pixel_edges():
 
 def test_mesh_checks():
     from objcam.geometry.meshcheck import check_known_mesh
-    from objcam.synth import icosphere
+    from objcam.synth.assets import icosphere
 
     v, f = icosphere(2)
     check_known_mesh(MeshData(v.astype(np.float32), f.astype(np.uint32)))  # closed and manifold
@@ -70,8 +70,8 @@ def test_silhouette_fit_recovers_a_perturbed_pose():
 
     from objcam.geometry.raycast import object_masks
     from objcam.geometry.silfit import fit
-    from objcam.synth import object_mesh
-    from objcam.synth_views import ViewRingParams, ring_cameras
+    from objcam.synth.assets import object_mesh
+    from objcam.synth.views import ViewRingParams, ring_cameras
 
     verts, faces = object_mesh("bunny", 0.08)
     truth = MeshData(verts.astype(np.float32), faces.astype(np.uint32))

@@ -28,7 +28,7 @@ def merge_hdri(tmp_path, name: str, stop: float, noise: NoiseModel | None, frame
     """(truth (H, W, 3), merged, valid, times, sensor signal per second before white balance)."""
     from objcam.capture.dng import synth_bracket
     from objcam.capture.hdr import merge_raw_bracket
-    from objcam.synth import load_bundled_envmap
+    from objcam.synth.assets import load_bundled_envmap
 
     env = load_bundled_envmap(name).astype(np.float64)
     lum = env.max(axis=2)

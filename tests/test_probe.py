@@ -21,8 +21,8 @@ from objcam.errors import InputError
 from objcam.metrics import brightest_angle_deg, luminance, relative_rmse
 from objcam.probe import BLIND, CAMERA, SATURATED, Reflectance, fit_ball, recover_probe
 from objcam.probe.optics import CHROME_ETA, CHROME_K, fresnel_conductor, reflection_points
-from objcam.probe.synth import make_bracket, probe_camera, render_probe
 from objcam.probe.unwrap import ProbeEnvmap, unwrap
+from objcam.synth.probe import make_bracket, probe_camera, render_probe
 
 R = 0.025  # 5 cm ball
 SPP = 64

@@ -14,7 +14,7 @@ import pytest
 
 from objcam.errors import InputError
 from objcam.probe.exposure import DIM_MEDIAN, check_bracket, dim_warning, frames_used, longest_level
-from objcam.probe.synth import make_bracket
+from objcam.synth.probe import make_bracket
 
 
 def _scene(median: float = 1.0) -> np.ndarray:

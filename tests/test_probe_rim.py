@@ -13,7 +13,7 @@ import pytest
 
 from objcam.probe import fit as F
 from objcam.probe.rim import _coverage, refine_rim
-from objcam.probe.synth import make_bracket, render_probe
+from objcam.synth.probe import make_bracket, render_probe
 
 R = 0.025  # 5 cm ball
 

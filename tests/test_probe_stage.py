@@ -26,9 +26,9 @@ from objcam.pipeline.stage import StageInputs
 from objcam.probe.artifact import read_uint8
 from objcam.probe.exposure import dim_warning
 from objcam.probe.recover import ball_mask
-from objcam.probe.synth import make_bracket, render_probe, write_ingest_probe
 from objcam.probe.truth import probe_truth
 from objcam.stages import probe as stage
+from objcam.synth.probe import make_bracket, render_probe, write_ingest_probe
 
 R = 0.025  # 5 cm ball: centre at z = R when it rests on the plane
 

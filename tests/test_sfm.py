@@ -16,7 +16,7 @@ from objcam.errors import InputError
 from objcam.sfm.align import Similarity, camera_difference, objcam_camera, pnp_camera, umeyama
 from objcam.sfm.board import (BoardSpec, board_points_world, board_texture, detect, read_display_image,
                               valid_corner_ids, world_points_array)
-from objcam.synth_views import ViewRingParams, render_views
+from objcam.synth.views import ViewRingParams, render_views
 
 SMALL = dict(n_views=11, width=320, height=240, spp=16, max_depth=2, distance=0.5, fov_deg=60.0,
              elevations_deg=[35.0, 55.0])
@@ -167,7 +167,7 @@ def test_frontend_small_capture(frontend_run):
     d = np.array([camera_difference(result.views[k], truth[k]) for k in truth])
     centre_mm, rot_deg = d[:, 0] * 1000, d[:, 1]
     # 320 x 240 at 16 spp: board corners ~0.2-0.3 px, so ~1-2 mm and ~0.2 degree (measured 1.6 mm / 2.9 mm max,
-    # 0.18 / 0.33 degree; at 24 views 800 x 600, 32 spp: 0.24 mm, 0.02 degree: python -m objcam.sfm.bench)
+    # 0.18 / 0.33 degree; at 24 views 800 x 600, 32 spp: 0.24 mm, 0.02 degree: python -m bench.sfm_bench)
     assert centre_mm.mean() < 2.5 and centre_mm.max() < 6.0, centre_mm
     assert rot_deg.mean() < 0.3 and rot_deg.max() < 0.7, rot_deg
     k = next(iter(truth))

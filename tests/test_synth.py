@@ -11,8 +11,9 @@ from objcam.envmap import rotate_z
 from objcam.image_io import read_exr, write_exr
 from objcam.schemas.capture import CaptureManifest, TextureAlbedo
 from objcam.scene import load_mesh
-from objcam.synth import (CameraSpec, SynthParams, apply_noise, bundled_envmaps, load_bundled_envmap,
-                          synthesize)
+from objcam.synth.assets import bundled_envmaps, load_bundled_envmap
+from objcam.synth.capture import CameraSpec, SynthParams, synthesize
+from objcam.synth.noise import apply_noise
 
 TINY = CameraSpec(width=48, height=48, distance=0.4)
 

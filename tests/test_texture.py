@@ -25,7 +25,7 @@ def texture_run(photo_capture, geometry_run, tmp_path_factory):  # noqa: F811
 
 
 def test_support_albedo_against_board(texture_run, photo_capture):  # noqa: F811
-    from objcam.geometry.synthetic import albedo_error
+    from objcam.synth.geometry_inputs import albedo_error
 
     out, m = texture_run
     err = albedo_error(out, photo_capture.truth)

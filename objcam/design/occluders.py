@@ -44,7 +44,7 @@ def normalise(vertices: np.ndarray, size: float) -> np.ndarray:
 
 def sphere(size: float) -> MeshData:
     """A sphere of diameter ``size`` resting on the plane (icosphere, 5120 faces)."""
-    from objcam.synth import icosphere
+    from objcam.synth.assets import icosphere
 
     v, f = icosphere(4)
     return MeshData(normalise(v, size), np.ascontiguousarray(f, dtype=np.uint32))
@@ -53,7 +53,7 @@ def sphere(size: float) -> MeshData:
 def bunny(size: float) -> MeshData:
     """The bundled Stanford bunny (objcam/assets/bunny.ply), largest side ``size``."""
     from objcam.scene import load_mesh
-    from objcam.synth import ASSETS
+    from objcam.synth.assets import ASSETS
 
     m = load_mesh(ASSETS / "bunny.ply")
     return MeshData(normalise(m.vertices, size), np.ascontiguousarray(m.faces, dtype=np.uint32))

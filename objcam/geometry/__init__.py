@@ -7,5 +7,6 @@ as well), ``carve`` (coarse-to-fine silhouette carving into a signed field), ``h
 ``surface`` (surface nets on that field, pymeshlab cleaning), ``meshcheck`` (a known mesh's bad-input checks),
 ``register`` (known-shape registration to the hull), ``silfit`` (its refinement against the silhouettes),
 ``chamfer`` (distances between meshes), ``uv`` (xatlas), ``raster`` (texel -> surface point),
-``bake`` (albedo from the linear views), ``synthetic`` (ingest/sfm-contract inputs rendered for tests and bench).
+``bake`` (albedo from the linear views). Synthetic ingest/sfm-contract inputs rendered for tests and bench are
+made by :mod:`objcam.synth.geometry_inputs`.
 """

@@ -1,7 +1,7 @@
-"""``objcam synth``: command-line options generated from objcam.synth.SynthParams (known-geometry captures) and,
-with ``--full``, objcam.synth_full.FullSynthParams (photographed captures: raw views, brackets, chrome ball), so
-the options and the models never drift. An option both models have is one flag; one that only the other flavour
-has is refused with a message."""
+"""``objcam synth``: command-line options generated from objcam.synth.capture.SynthParams (known-geometry
+captures) and, with ``--full``, objcam.synth.full.FullSynthParams (photographed captures: raw views, brackets,
+chrome ball), so the options and the models never drift. An option both models have is one flag; one that only
+the other flavour has is refused with a message."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from objcam.errors import ObjcamError
 
 
 def _models():
-    from objcam.synth import SynthParams
-    from objcam.synth_full import FullSynthParams
+    from objcam.synth.capture import SynthParams
+    from objcam.synth.full import FullSynthParams
 
     return SynthParams, FullSynthParams
 
@@ -23,7 +23,7 @@ def add_synth_args(p: argparse.ArgumentParser) -> None:
     SynthParams, FullSynthParams = _models()
     p.add_argument("out", type=Path, help="folder to write the capture into (must not exist or be empty)")
     p.add_argument("--full", action="store_true", help="a photographed capture: raw (DNG) ring of views on the "
-                   "printed board, bracketed targets and a chrome ball, cameras left to sfm (objcam.synth_full)")
+                   "printed board, bracketed targets and a chrome ball, cameras left to sfm (objcam.synth.full)")
     seen: set[str] = set()
     for model, tag in ((SynthParams, ""), (FullSynthParams, "[--full] ")):
         for name, field in model.model_fields.items():
@@ -65,11 +65,11 @@ def run_synth(args: argparse.Namespace) -> int:
         msg = "; ".join(f"--{'.'.join(map(str, err['loc'])).replace('_', '-')}: {err['msg']}" for err in e.errors())
         raise ObjcamError(f"bad synth option: {msg}") from None
     if model is FullSynthParams:
-        from objcam.synth_full import synthesize_full
+        from objcam.synth.full import synthesize_full
 
         summary = synthesize_full(args.out, params)
     else:
-        from objcam.synth import synthesize
+        from objcam.synth.capture import synthesize
 
         summary = synthesize(args.out, params)
     Console().print(f"synthetic capture written to {args.out}")

@@ -14,11 +14,12 @@ exposure bracket.
 - :mod:`objcam.probe.measure`: the probe stage's entry point (:func:`~objcam.probe.measure.measure_probe`): the
   ball's reflectance (:mod:`objcam.probe.ball_reflectance`), :func:`recover_probe`, saturated sources, warnings,
   and probe.json's record; :mod:`objcam.probe.merged` reads ingest's merged bracket for it.
-- :mod:`objcam.probe.synth`: synthetic chrome-ball brackets rendered with Mitsuba (and written in the ingest
-  stage's contract, :func:`~objcam.probe.synth.write_ingest_probe`).
 - :mod:`objcam.probe.sources`: sources saturated in every frame (direction, lower-bound energy).
 - :mod:`objcam.probe.artifact`: the probe stage's files (objcam/stages/probe.py writes them);
   :mod:`objcam.probe.truth`: :func:`~objcam.probe.truth.probe_truth`, the probe as evaluate's ground truth.
+
+Synthetic chrome-ball brackets rendered with Mitsuba (and written in the ingest stage's contract,
+:func:`~objcam.synth.probe.write_ingest_probe`) are made by :mod:`objcam.synth.probe`.
 
 Measured accuracy, bilinear sampling (the unwrap now samples bicubically: less blur, see
 :mod:`objcam.probe.unwrap`; the probe stage's numbers are in bench/results.md, ``## Chrome-ball probe (issue 5)``)

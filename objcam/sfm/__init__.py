@@ -7,7 +7,8 @@
 - ``bundle``: final bundle adjustment with the board held fixed.
 - ``report``: green / yellow / red checks with fixes.
 - ``frontend``: all of it: :func:`objcam.sfm.frontend.estimate_cameras`.
-- ``bench``: the accuracy benchmark (``python -m objcam.sfm.bench OUT``).
+
+Its accuracy benchmark lives outside the package, in bench/sfm_bench.py (``python -m bench.sfm_bench OUT``).
 
 Submodules import OpenCV / pycolmap / scipy lazily where they can; import what you need from them directly.
 """

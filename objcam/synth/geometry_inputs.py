@@ -1,6 +1,6 @@
 """Synthetic photo-stage inputs for the geometry and texture stages: a capture folder with ``[views]`` and
 ``[board]``, and the ``ingest`` and ``sfm`` artifact folders in their contract format (objcam/stages/ingest.py,
-objcam/stages/sfm.py), rendered from the ring of views of :mod:`objcam.synth_views`.
+objcam/stages/sfm.py), rendered from the ring of views of :mod:`objcam.synth.views`.
 
 Used by the tests and the benchmark so that geometry/texture can be built and measured independently of the
 front end. What is written (``root`` = the returned paths' parent)::
@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from objcam.camera import Camera
-from objcam.synth_views import ViewRingParams, ring_cameras, view_names
+from objcam.synth.views import ViewRingParams, ring_cameras, view_names
 
 
 class SyntheticInputs(BaseModel):
@@ -101,7 +101,8 @@ def write_inputs(root: str | Path, params: ViewRingParams | None = None, noise: 
     from objcam.render import mitsuba_box_bitmap, render_image
     from objcam.scene import AlbedoValue, MeshData, SceneDescription, build_mitsuba_scene, make_plane
     from objcam.sfm.board import board_texture
-    from objcam.synth import apply_noise, auto_exposure, load_envmap, object_mesh, write_ply
+    from objcam.synth.assets import load_envmap, object_mesh, write_ply
+    from objcam.synth.noise import apply_noise, auto_exposure
 
     params = params or ViewRingParams()
     noise = noise or InputNoise()

@@ -1,8 +1,8 @@
 """Accuracy benchmark of the capture front end on a synthetic ring of views (run by hand, not by the tests):
 
-    python -m objcam.sfm.bench OUT_DIR [--views 24] [--width 800] [--height 600] [--spp 32] [--known-intrinsics]
+    python -m bench.sfm_bench OUT_DIR [--views 24] [--width 800] [--height 600] [--spp 32] [--known-intrinsics]
 
-Renders the ring (``objcam.synth_views``) into OUT_DIR/views with the true cameras in OUT_DIR/truth (reused when
+Renders the ring (``objcam.synth.views``) into OUT_DIR/views with the true cameras in OUT_DIR/truth (reused when
 present), runs :func:`objcam.sfm.frontend.estimate_cameras` on the views, and prints the camera errors against the
 truth (centre distance in mm, rotation in degrees: mean, median, max) with the front end's own timings and checks.
 Writes OUT_DIR/bench.json.
@@ -34,7 +34,7 @@ def camera_errors(estimated: dict, truth: dict) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     from objcam.camera import Camera
     from objcam.sfm.frontend import FrontendOptions, estimate_cameras
-    from objcam.synth_views import ViewRingParams, render_views
+    from objcam.synth.views import ViewRingParams, render_views
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path)

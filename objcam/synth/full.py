@@ -1,9 +1,9 @@
 """Synthetic *photographed* captures (``objcam synth OUT --full``): what a photographer with a DSLR brings home.
 
 The object (a 3D print of a known shape) stands on the printed ChArUco board (``objcam.sfm.board``) under an
-environment map. Rendered with Mitsuba (``objcam.synth_views.board_scene``) and written as camera raws:
+environment map. Rendered with Mitsuba (``objcam.synth.views.board_scene``) and written as camera raws:
 
-- a ring of views (``objcam.synth_views.ring_cameras``), one raw each, one fixed exposure (manual mode);
+- a ring of views (``objcam.synth.views.ring_cameras``), one raw each, one fixed exposure (manual mode);
 - per illumination (envmap rotation) one target: the object and its shadows from a tripod camera, path-traced
   with interreflections, as an exposure bracket;
 - per illumination a chrome ball (Mitsuba conductor ``Cr``) resting on the board in place of the object, seen
@@ -141,8 +141,8 @@ def target_names(params: FullSynthParams) -> list[tuple[str, float]]:
 
 
 def view_params(params: FullSynthParams):
-    """The ring of views as objcam.synth_views.ViewRingParams (for its cameras)."""
-    from objcam.synth_views import ViewRingParams
+    """The ring of views as objcam.synth.views.ViewRingParams (for its cameras)."""
+    from objcam.synth.views import ViewRingParams
 
     return ViewRingParams(object=params.object, object_height=params.object_height,
                           object_albedo=params.object_albedo, envmap=params.envmap,
@@ -234,7 +234,7 @@ def bracket_times(per_second: np.ndarray, n: int, stop: float, median_level: flo
 
 
 def _toml(v) -> str:
-    from objcam.synth import _toml_value
+    from objcam.synth.capture import _toml_value
 
     return _toml_value(v)
 
@@ -247,8 +247,8 @@ def synthesize_full(out_dir: str | Path, params: FullSynthParams | None = None) 
     from objcam.progress import bar
     from objcam.render import render_image
     from objcam.sfm.board import board_texture
-    from objcam.synth import load_envmap, object_mesh, write_ply
-    from objcam.synth_views import board_scene, ring_cameras, view_names
+    from objcam.synth.assets import load_envmap, object_mesh, write_ply
+    from objcam.synth.views import board_scene, ring_cameras, view_names
 
     params = params or FullSynthParams()
     out = Path(out_dir)

@@ -3,7 +3,7 @@
 
 :func:`render_views` writes ``<out_dir>/<name>.png`` (tonemapped display images, 8 or 16 bit, one shared exposure,
 as a camera with fixed settings would take them) and each view's true camera as ``<camera_dir>/<name>.json``
-(objcam Camera JSON, OpenCV convention). The scene is the one :func:`objcam.synth.synthesize` renders when given
+(objcam Camera JSON, OpenCV convention). The scene is the one :func:`objcam.synth.capture.synthesize` renders when given
 the board texture as its support albedo (``objcam.sfm.board.write_board_texture`` and its extent), so target
 images and views agree.
 """
@@ -127,7 +127,7 @@ def render_views(out_dir: str | Path, params: ViewRingParams | None = None,
     """Render the ring of views into ``out_dir`` (``view_000.png`` ...) and write each true camera as
     ``<camera_dir>/view_000.json`` (default ``camera_dir`` = ``out_dir``). Returns [(image path, true camera)].
 
-    Each view: path-traced linear radiance (objcam.render.render_image), shot noise (objcam.synth.apply_noise,
+    Each view: path-traced linear radiance (objcam.render.render_image), shot noise (objcam.synth.noise.apply_noise,
     ``shot_noise`` relative at the median pixel), then one exposure for all views (the first view's
     ``exposure_percentile`` maps to white), gamma 2.2, quantised to ``bit_depth`` bits.
     """
@@ -137,7 +137,8 @@ def render_views(out_dir: str | Path, params: ViewRingParams | None = None,
     from objcam.image_io import atomic_write_bytes
     from objcam.progress import bar
     from objcam.render import render_image
-    from objcam.synth import apply_noise, auto_exposure, load_envmap, object_mesh
+    from objcam.synth.assets import load_envmap, object_mesh
+    from objcam.synth.noise import apply_noise, auto_exposure
 
     params = params or ViewRingParams()
     out = Path(out_dir)

@@ -122,7 +122,7 @@ def render_probe(envmap: str | np.ndarray = "forest", *, radius: float = 0.025, 
 
     from objcam.render import render_image
     from objcam.scene import use_mitsuba
-    from objcam.synth import load_bundled_envmap
+    from objcam.synth.assets import load_bundled_envmap
 
     env = load_bundled_envmap(envmap) if isinstance(envmap, str) else np.asarray(envmap, np.float32)
     c = np.array([0.0, 0.0, radius]) if centre is None else np.asarray(centre, np.float64)
@@ -145,7 +145,7 @@ def _render_band(scene, cam: Camera, centre: np.ndarray, radius: float, band_px:
     """(H, W, 3) float32: the pixels within ``band_px`` of the silhouette rendered (box filter), the rest 0."""
     import cv2
 
-    from objcam.probe.fit import silhouette_px
+    from objcam.probe.silhouette import silhouette_px
     from objcam.render import render_rays
 
     poly = silhouette_px(cam, centre[None], radius, 2048)[0]
@@ -172,7 +172,7 @@ def make_bracket(clean: np.ndarray, times: Sequence[float] | None = None, *, n_f
     """
     from objcam.capture.hdr import merge_frames
     from objcam.capture.raw import LinearImage
-    from objcam.synth import apply_noise
+    from objcam.synth.noise import apply_noise
 
     clean = np.asarray(clean, np.float64)
     if times is None:

@@ -31,6 +31,8 @@ Negative values from read noise are kept (unbiased). Each target is rendered as 
 ``spp`` samples; their difference measures the render's own Monte Carlo noise, and capture.toml's ``noise_sigma`` is
 hypot(camera noise, render noise), both relative at the median pixel (at the default 512 spp the render noise,
 about 2.4% per pixel, dominates the 0.1% camera noise).
+
+The model's functions live in :mod:`objcam.synth.noise`, the envmaps and meshes in :mod:`objcam.synth.assets`.
 """
 
 from __future__ import annotations
@@ -47,121 +49,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from objcam.camera import Camera, look_at
 from objcam.errors import InputError
+from objcam.synth.assets import bundled_envmaps, load_envmap, object_mesh, write_ply
+from objcam.synth.noise import apply_noise, auto_exposure, mc_noise, relative_noise
 
-ASSETS = Path(__file__).resolve().parent / "assets"
 RGB = tuple[float, float, float]
 Pattern = Literal["checker", "dots"]
-
-
-# --------------------------------------------------------------------------------------------------- assets
-
-
-def bundled_envmaps() -> list[str]:
-    """Names of the bundled environment maps (objcam/assets/envmaps/*.exr, 128 x 256, objcam's convention)."""
-    return sorted(p.stem for p in (ASSETS / "envmaps").glob("*.exr"))
-
-
-def load_bundled_envmap(name: str) -> np.ndarray:
-    """A bundled environment map (H, 2H, 3) float32 linear radiance in objcam's lat-long convention."""
-    from objcam.image_io import read_exr
-
-    path = ASSETS / "envmaps" / f"{name}.exr"
-    if not path.is_file():
-        raise InputError(f"no bundled envmap named {name!r}", None, f"use one of {', '.join(bundled_envmaps())} "
-                         "or the path of an EXR in objcam's lat-long convention")
-    return np.ascontiguousarray(read_exr(path)[..., :3], dtype=np.float32)
-
-
-def load_envmap(spec: str, height: int | None = None) -> np.ndarray:
-    """A bundled name or the path of an EXR (H, 2H) in objcam's convention, optionally resampled to ``height``."""
-    from objcam.envmap import resample_to_height
-    from objcam.image_io import read_exr
-
-    if spec in bundled_envmaps():
-        env = load_bundled_envmap(spec)
-    else:
-        path = Path(spec)
-        if not path.is_file():
-            raise InputError("envmap not found", path, f"give a bundled name ({', '.join(bundled_envmaps())}) "
-                             "or an EXR in objcam's lat-long convention")
-        env = read_exr(path)
-        if env.shape[2] == 1:
-            env = np.repeat(env, 3, axis=2)
-        env = env[..., :3]
-        if env.shape[1] != 2 * env.shape[0]:
-            raise InputError(f"envmap is {env.shape[1]}x{env.shape[0]}, not 2H x H", path,
-                             "give an equirectangular map twice as wide as high")
-        if not np.all(np.isfinite(env)) or env.min() < 0:
-            raise InputError("envmap has negative, NaN or infinite values", path)
-    if height is not None and env.shape[0] != height:
-        env = resample_to_height(env.astype(np.float64), height)
-    return np.ascontiguousarray(env, dtype=np.float32)
-
-
-def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Write a triangle mesh as binary little-endian PLY (float32 x, y, z; int32 vertex_indices), atomically."""
-    from objcam.image_io import atomic_write_bytes
-
-    v = np.ascontiguousarray(vertices, dtype="<f4")
-    f = np.asarray(faces, dtype=np.int64)
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment objcam synth\nelement vertex {len(v)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n").encode()
-    rec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    rec["n"] = 3
-    rec["i"] = f
-    atomic_write_bytes(path, header + v.tobytes() + rec.tobytes())
-
-
-def icosphere(subdivisions: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Unit sphere: vertices (V, 3) float64 and outward-wound faces (F, 3); 20 * 4**subdivisions faces."""
-    t = (1.0 + 5**0.5) / 2
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
-         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2),
-         (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11),
-         (6, 2, 10), (8, 6, 7), (9, 8, 1)]
-    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
-    faces = np.array(f, dtype=np.int64)
-    for _ in range(subdivisions):
-        cache: dict[tuple[int, int], int] = {}
-
-        def mid(a: int, b: int) -> int:
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                p = verts[a] + verts[b]
-                verts.append(p / np.linalg.norm(p))
-                cache[key] = len(verts) - 1
-            return cache[key]
-
-        new = []
-        for a, b, c in faces:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            new += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
-        faces = np.array(new, dtype=np.int64)
-    return np.array(verts), faces.astype(np.uint32)
-
-
-def object_mesh(spec: str, height: float) -> tuple[np.ndarray, np.ndarray]:
-    """The object as (vertices (V, 3) float32 metres, faces (F, 3) uint32): ``spec`` "bunny", "sphere" or a mesh
-    path; scaled to ``height`` metres, centred on the origin in x and y (bounding box), lowest vertex at z = 0."""
-    from objcam.scene import load_mesh
-
-    if spec == "sphere":
-        v, f = icosphere(4)
-    elif spec == "bunny":
-        m = load_mesh(ASSETS / "bunny.ply")
-        v, f = m.vertices.astype(np.float64), m.faces
-    else:
-        m = load_mesh(spec)
-        v, f = m.vertices.astype(np.float64), m.faces
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    if hi[2] - lo[2] <= 0:
-        raise InputError("mesh is flat in z; cannot scale it to a height", spec)
-    v = (v - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])) * (height / (hi[2] - lo[2]))
-    v = v.astype(np.float32)
-    v[:, 2] -= v[:, 2].min()  # exactly 0 after the float32 rounding
-    return v, np.ascontiguousarray(f, dtype=np.uint32)
 
 
 # ------------------------------------------------------------------------------------------------- textures
@@ -200,53 +92,6 @@ def pattern_texture(pattern: str, size: int, extent: float, seed: int = 0, scale
     return np.clip(img, 0.05, 0.9).astype(np.float32)
 
 
-# ---------------------------------------------------------------------------------------------------- noise
-
-
-def auto_exposure(clean: np.ndarray, shot_noise: float) -> float:
-    """Electrons per unit radiance giving the median positive pixel a relative shot noise of ``shot_noise``."""
-    pos = clean[np.isfinite(clean) & (clean > 0)]
-    med = float(np.median(pos)) if pos.size else 1.0
-    return 1.0 / (shot_noise**2 * med)
-
-
-def apply_noise(clean: np.ndarray, exposure: float, read_noise: float, white_level: float | None,
-                rng: np.random.Generator, noise: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """The camera model: Poisson(exposure * clean) electrons + N(0, read_noise^2) electrons, / exposure, clipped
-    at ``white_level`` (radiance units). Returns (image float32, clipped mask (H, W) where any channel clipped).
-
-    Mean = clean, variance = clean / exposure + (read_noise / exposure)^2 (below the white level).
-    """
-    img = np.asarray(clean, dtype=np.float64)
-    if noise:
-        electrons = rng.poisson(np.clip(img, 0.0, None) * exposure).astype(np.float64)
-        electrons += rng.normal(0.0, read_noise, img.shape)
-        img = electrons / exposure
-    if white_level is not None:
-        clipped = img >= white_level
-        img = np.minimum(img, white_level)
-    else:
-        clipped = np.zeros(img.shape, dtype=bool)
-    if clipped.ndim == 3:
-        clipped = clipped.any(axis=2)
-    return img.astype(np.float32), clipped
-
-
-def mc_noise(a: np.ndarray, b: np.ndarray, mean: np.ndarray, w: float = 0.5) -> float:
-    """Median relative Monte Carlo noise of ``mean = w a + (1 - w) b`` from two independent renders ``a``, ``b``
-    (robust: 1.4826 x the median absolute deviation, over pixels with a positive mean)."""
-    ok = mean > 1e-8 * max(float(mean.max()), 1e-30)
-    if not ok.any():
-        return 0.0
-    # var(a - b) = var(a) + var(b); with var ~ 1/spp, var(mean) = var(a - b) * w (1 - w)
-    dev = np.abs(a - b)[ok] * math.sqrt(w * (1 - w)) / mean[ok]
-    return float(1.4826 * np.median(dev))
-
-
-def relative_noise(level: float, exposure: float, read_noise: float) -> float:
-    """Standard deviation over mean of a pixel of radiance ``level`` under the noise model."""
-    e = level * exposure
-    return math.sqrt(e + read_noise**2) / e if e > 0 else float("inf")
 
 
 # --------------------------------------------------------------------------------------------------- params
@@ -318,7 +163,7 @@ class SynthParams(BaseModel):
     cameras: list[CameraSpec] = Field([{}], min_length=1, validate_default=True,
                                       description="target cameras: JSON list of objects with keys width, height, "
                                       "azimuth_deg, elevation_deg, distance, target, fov_deg, fx, fy, cx, cy, "
-                                      "world_from_camera (objcam.synth.CameraSpec)")
+                                      "world_from_camera (objcam.synth.capture.CameraSpec)")
     object_albedo: Union[float, RGB] = Field(0.6, description="scalar or [r, g, b]")
     support_albedo: AlbedoParam = Field(0.5, description="scalar, [r, g, b], 'checker', 'dots' or an EXR path")
     object_albedo_known: bool = Field(True, description="write the object albedo into capture.toml")
@@ -331,10 +176,11 @@ class SynthParams(BaseModel):
                      "of the indirect part)")
     estimator: Literal["path", "split"] = Field(
         "path", description="'path': Mitsuba's path tracer; 'split': direct light by stratified quadrature over "
-        "split_strata x 2 split_strata cells per sphere plus path-traced indirect (objcam.render_split; ~10x less noise)")
+        "split_strata x 2 split_strata cells per sphere plus path-traced indirect (objcam.synth.split_render; "
+        "~10x less noise)")
     split_strata: int = Field(64, ge=8, le=1024, description="theta rows of the direct-light strata ('split')")
     split_budget: float = Field(4.0, gt=0, le=64, description="extra rays for bright strata ('split'; see "
-                                "objcam.render_split.direction_strata), shared by the two half renders")
+                                "objcam.synth.split_render.direction_strata), shared by the two half renders")
     max_depth: int = Field(6, ge=-1, description="path length (Mitsuba's path integrator; 2 = direct light only)")
     envmap_upsample: int = Field(2, ge=1, le=16, description="objcam.render.mitsuba_box_bitmap factor")
     noise: bool = Field(True, description="apply shot and read noise")
@@ -428,7 +274,7 @@ def synthesize(out_dir: str | Path, params: SynthParams | None = None) -> dict:
     from objcam.image_io import atomic_write_text, read_exr, write_exr, write_tonemapped_png
     from objcam.progress import bar
     from objcam.render import mitsuba_box_bitmap, render_image
-    from objcam.render_split import direction_strata, render_split
+    from objcam.synth.split_render import direction_strata, render_split
     from objcam.scene import MeshData, SceneDescription, build_mitsuba_scene, make_plane
 
     params = params or SynthParams()
