@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from objcam.errors import InputError
 
@@ -18,14 +18,15 @@ from objcam.errors import InputError
 class Camera(BaseModel):
     """Intrinsics in pixels and the 4x4 ``world_from_camera`` rigid transform (metres)."""
 
-    model_config = ConfigDict(frozen=True)
+    # extra="forbid": a misspelt key ("fx " or "focal") is an error, as in capture.toml, not silently ignored
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    width: int = Field(gt=0, le=1 << 16)
+    height: int = Field(gt=0, le=1 << 16)
+    fx: float = Field(gt=0, allow_inf_nan=False)
+    fy: float = Field(gt=0, allow_inf_nan=False)
+    cx: float = Field(allow_inf_nan=False)
+    cy: float = Field(allow_inf_nan=False)
     world_from_camera: list[list[float]]
 
     @field_validator("world_from_camera")
@@ -34,6 +35,8 @@ class Camera(BaseModel):
         a = np.asarray(m, dtype=float)
         if a.shape != (4, 4):
             raise ValueError("world_from_camera must be a 4x4 matrix")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("world_from_camera holds NaN or infinite values")
         r = a[:3, :3]
         if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
             raise ValueError("world_from_camera's rotation is not orthonormal with determinant +1")

@@ -76,6 +76,11 @@ def load_mesh(path: str | Path) -> MeshData:
     path = Path(path)
     if not path.is_file():
         raise InputError("mesh file not found", path, "check the path in capture.toml")
+    from objcam.mesh_check import scan
+
+    problem, declared = scan(path)
+    if problem:  # the loader would drop these silently, or report them as an unreadable file
+        raise InputError(f"mesh is malformed: {problem}", path, "repair or re-export the mesh")
     ms = pymeshlab.MeshSet()
     try:
         ms.load_new_mesh(str(path))
@@ -83,6 +88,10 @@ def load_mesh(path: str | Path) -> MeshData:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise InputError(f"mesh does not load ({first})", path, "export it as PLY or OBJ") from None
     m = ms.current_mesh()
+    if declared and (m.vertex_number() < declared[0] or m.face_number() < declared[1]):
+        raise InputError(f"mesh declares {declared[0]} vertices and {declared[1]} faces but only "
+                         f"{m.vertex_number()} and {m.face_number()} load (NaN or infinite coordinates, or face "
+                         "indices past the vertex list)", path, "repair or re-export the mesh")
     if m.face_number() == 0 or m.vertex_number() < 3:
         raise InputError("mesh has no triangles", path, "export the surface as a triangle mesh")
     uv = None

@@ -15,26 +15,41 @@ _CHUNK = 1 << 20
 
 
 def file_digest(path: Path, memo: dict[str, list] | None = None) -> str:
-    """sha256 of a file's bytes ("missing" if absent). ``memo`` maps path -> [size, mtime_ns, digest] so large
-    unchanged inputs (raw photos) are hashed once."""
+    """sha256 of a file's bytes ("missing" if absent). ``memo`` maps path -> [size, mtime_ns, ctime_ns, inode,
+    digest] so large unchanged inputs (raw photos) are hashed once. The ctime is in the key because a content change
+    that keeps size and mtime (``touch -r``, a tool restoring times) still changes it, and nothing can set it back.
+    Call it on regular files only (objcam.pipeline.inputs.check_input): a FIFO or device would never end."""
     path = Path(path)
     try:
         st = path.stat()
     except FileNotFoundError:
         return "missing"
     key = str(path.resolve())
+    stamp = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
     if memo is not None:
         hit = memo.get(key)
-        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
-            return hit[2]
+        if hit and len(hit) == 5 and hit[:4] == stamp:
+            return hit[4]
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while chunk := f.read(_CHUNK):
             h.update(chunk)
     digest = h.hexdigest()
     if memo is not None:
-        memo[key] = [st.st_size, st.st_mtime_ns, digest]
+        memo[key] = stamp + [digest]
     return digest
+
+
+def manifest_digest(path: Path) -> str:
+    """Hash of capture.toml's parsed content, so a comment or a reformatting reruns nothing (its bytes' hash
+    when it does not parse: the scene stage then reports why)."""
+    import tomllib
+
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return file_digest(path)
+    return "toml:" + hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _module_files(mod: ModuleType) -> list[Path]:

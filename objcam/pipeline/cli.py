@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import sys
@@ -36,6 +37,8 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.PARAM=VALUE",
                    help="override a stage parameter, e.g. --set transport.model=direct (repeatable)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--allow-outside-inputs", action="store_true",
+                   help="read inputs that lie outside the capture folder (refused by default)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("capture", type=Path)
     p.add_argument("--work", type=Path, default=None)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.PARAM=VALUE")
+    p.add_argument("--allow-outside-inputs", action="store_true")
     p = sub.add_parser("synth", help="render a synthetic known-geometry capture")
     from objcam.pipeline.synth_cli import add_synth_args
 
@@ -84,7 +88,8 @@ def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
     console = _console()
     if args.quiet:
         os.environ["OBJCAM_QUIET"] = "1"
-    pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides), quiet=args.quiet)
+    pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides), quiet=args.quiet,
+                    allow_outside_inputs=args.allow_outside_inputs)
 
     def live(rep) -> None:
         if rep.status == "n/a":
@@ -103,12 +108,13 @@ def _status(args) -> int:
 
     from objcam.pipeline.engine import Pipeline, parse_overrides
 
-    pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides))
+    pipe = Pipeline(args.capture, args.work, parse_overrides(args.overrides),
+                    allow_outside_inputs=args.allow_outside_inputs)
     t = Table(title=f"objcam status: {args.capture}")
     for col in ("stage", "state", "time", "key", "summary"):
         t.add_column(col, overflow="fold")
     for row in pipe.status():
-        style = {"done": "green", "stale": "yellow", "missing": "red", "n/a": "dim"}[row["state"]]
+        style = {"done": "green", "stale": "yellow", "damaged": "yellow", "missing": "red", "n/a": "dim"}[row["state"]]
         secs = f"{row['seconds']:.2f} s" if row["seconds"] is not None else ""
         t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], escape(row["summary"]))
     _console().print(t)
@@ -119,7 +125,7 @@ def _evaluate(args) -> int:
     _run(args, only=["evaluate"])
     from objcam.pipeline.engine import Pipeline
 
-    pipe = Pipeline(args.capture, args.work)
+    pipe = Pipeline(args.capture, args.work, allow_outside_inputs=args.allow_outside_inputs)
     metrics = json.loads((pipe.stage_dir("evaluate") / "metrics.json").read_text())
     _console().print_json(json.dumps(metrics))
     return 0
@@ -145,6 +151,14 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args, only=[args.command])
     except ObjcamError as e:
         print(f"objcam: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the disk, not objcam: full, read-only, no permission
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM):
+            raise
+        where = f"{e.filename}: " if e.filename else ""
+        fix = "free some space or give --work DIR elsewhere" if e.errno in (errno.ENOSPC, errno.EDQUOT) else \
+            "give a writable artifact folder with --work DIR"
+        print(f"objcam: error: {where}{e.strerror} -- fix: {fix}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("objcam: interrupted; finished stages are kept, rerun to resume", file=sys.stderr)

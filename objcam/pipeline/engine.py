@@ -4,8 +4,10 @@ folder and renames it into place, under a lock on the work folder."""
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import fcntl
 import json
+import math
 import os
 import shutil
 import threading
@@ -23,12 +25,14 @@ from objcam import __version__
 from objcam.errors import ObjcamError, StageError
 from objcam.image_io import atomic_write_text
 from objcam.pipeline import graph
-from objcam.pipeline.cache import code_digest, file_digest, stage_key
+from objcam.pipeline import integrity, workdir
+from objcam.pipeline.cache import code_digest, file_digest, manifest_digest, stage_key
+from objcam.pipeline.inputs import check_input
 from objcam.pipeline.stage import StageInputs
 from objcam.schemas.stage_record import StageRecord
 
 HASH_MEMO = ".hashes.json"
-LOCK = ".lock"
+LOCK = workdir.LOCK
 
 
 def default_work_dir(capture: Path) -> Path:
@@ -50,8 +54,21 @@ def parse_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
             parsed: Any = json.loads(value)
         except json.JSONDecodeError:
             parsed = value
+        if _non_finite(parsed):  # json.loads reads NaN, Infinity: never a meaningful setting
+            raise ObjcamError(f"--set {item!r}: the value is not a finite number", None,
+                              "give a finite number (see the stage's params)")
         out.setdefault(stage, {})[param] = parsed
     return out
+
+
+def _non_finite(value: Any) -> bool:
+    if isinstance(value, float):
+        return not math.isfinite(value)
+    if isinstance(value, list):
+        return any(_non_finite(v) for v in value)
+    if isinstance(value, dict):
+        return any(_non_finite(v) for v in value.values())
+    return False
 
 
 def make_params(name: str, overrides: dict[str, Any] | None) -> BaseModel:
@@ -109,11 +126,15 @@ class Pipeline:
     """One capture's pipeline. ``work`` defaults to CAPTURE/objcam."""
 
     def __init__(self, capture: str | Path, work: str | Path | None = None,
-                 overrides: dict[str, dict[str, Any]] | None = None, quiet: bool = False):
+                 overrides: dict[str, dict[str, Any]] | None = None, quiet: bool = False,
+                 allow_outside_inputs: bool = False):
         self.capture = Path(capture).resolve()
         if not self.capture.is_dir():
             raise ObjcamError("capture folder not found", self.capture, "give the folder that holds capture.toml")
-        self.work = Path(work).resolve() if work else default_work_dir(self.capture)
+        # never resolve the work folder: a symbolic link there is refused, not followed (workdir.refuse_links)
+        self.work = workdir.absolute(work) if work else default_work_dir(self.capture)
+        self.explicit_work = work is not None
+        self.allow_outside_inputs = allow_outside_inputs
         self.overrides = overrides or {}
         self.quiet = quiet
         self._memo: dict[str, list] = {}
@@ -131,10 +152,16 @@ class Pipeline:
         mod = graph.stage_module(name)
         files = mod.input_files(self.capture) if hasattr(mod, "input_files") else []
         out = {}
+        outside_ok = self.allow_outside_inputs or getattr(mod, "READS_OUTSIDE_CAPTURE", False)
         for f in files:
             f = Path(f)
             rel = os.path.relpath(f, self.capture)
-            out[rel] = file_digest(f, self._memo)
+            if not check_input(f, self.capture, outside_ok):
+                out[rel] = "missing"
+            elif rel == "capture.toml":
+                out[rel] = manifest_digest(f)
+            else:
+                out[rel] = file_digest(f, self._memo)
         return out
 
     def applies(self, name: str) -> bool:
@@ -180,6 +207,8 @@ class Pipeline:
                 key = f"error: {e}"
             if rec is None:
                 state = "missing"
+            elif rec.key == key and integrity.damage(self.stage_dir(name), rec.artifacts, self._memo) is not None:
+                state = "damaged"
             elif rec.key == key:
                 state = "done"
             else:
@@ -192,16 +221,13 @@ class Pipeline:
     # ---- running ----------------------------------------------------------------------------------
     @contextmanager
     def lock(self) -> Iterator[None]:
-        self.work.mkdir(parents=True, exist_ok=True)
-        path = self.work / LOCK
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        workdir.prepare(self.work, self.explicit_work)
+        fd = workdir.open_lock(self.work)
         try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = Path(path).read_text().strip() or "another process"
+            if not workdir.try_lock(fd):
+                holder = workdir.read_holder(fd) or "another process"
                 raise ObjcamError(f"another objcam run holds the lock ({holder})", self.work,
-                                  "wait for it to finish (the lock is freed when that process exits)") from None
+                                  "wait for it to finish (the lock is freed when that process exits)")
             os.ftruncate(fd, 0)
             os.write(fd, f"pid {os.getpid()}".encode())
             self._clean_leftovers()
@@ -212,10 +238,11 @@ class Pipeline:
 
     def _clean_leftovers(self) -> None:
         """Remove temporary folders a killed run left behind (never a finished stage)."""
-        for p in self.work.glob(".tmp-*"):
-            shutil.rmtree(p, ignore_errors=True)
-        for p in self.work.glob(".old-*"):
-            shutil.rmtree(p, ignore_errors=True)
+        for p in list(self.work.glob(".tmp-*")) + list(self.work.glob(".old-*")):
+            if p.is_symlink() or not p.is_dir():
+                p.unlink(missing_ok=True)  # never delete through a link
+            else:
+                shutil.rmtree(p, ignore_errors=True)
 
     def _load_memo(self) -> None:
         try:
@@ -272,8 +299,12 @@ class Pipeline:
             return StageReport(name, "n/a", "", 0.0, f"not needed (runs when {graph.applies_when(name)})")
         key, parts = self.key(name)
         rec = self.record(name)
+        note = ""
         if rec is not None and rec.key == key and not forced:
-            return StageReport(name, "cached", key, rec.wall_seconds, rec.summary, rec.metrics)
+            damage = integrity.damage(self.stage_dir(name), rec.artifacts, self._memo)
+            if damage is None:
+                return StageReport(name, "cached", key, rec.wall_seconds, rec.summary, rec.metrics)
+            note = f"rebuilt: cached artifacts damaged ({damage}); "
 
         tmp = self.work / f".tmp-{name}-{uuid.uuid4().hex[:8]}"
         tmp.mkdir(parents=True)
@@ -290,23 +321,39 @@ class Pipeline:
         except KeyboardInterrupt:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        except Exception as e:
+        except OSError as e:
             shutil.rmtree(tmp, ignore_errors=True)
-            log = self.work / f"{name}.error.log"
-            atomic_write_text(log, traceback.format_exc())
-            raise StageError(f"stage {name} failed: {type(e).__name__}: {e}", log,
-                             "the traceback is in this file; please report it") from None
+            if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise ObjcamError(f"stage {name}: the disk is full ({e.strerror})", self.work,
+                                  "free some space, or give --work DIR on a disk with room") from None
+            if e.errno in (errno.EROFS, errno.EACCES) and Path(getattr(e, "filename", "") or "/").is_relative_to(self.work):
+                raise ObjcamError(f"stage {name}: cannot write its artifacts ({e.strerror})", self.work,
+                                  "give a writable artifact folder with --work DIR") from None
+            self._internal_error(name, tmp, e)
+        except Exception as e:
+            self._internal_error(name, tmp, e)
         seconds = time.perf_counter() - t0
+        artifacts = integrity.record_artifacts(tmp)
         record = StageRecord(
             stage=name, key=key, code=parts["code"], params=parts["params"].model_dump(mode="json"),
             inputs=parts["inputs"], upstream=parts["upstream"], wall_seconds=round(seconds, 3),
             peak_rss_mb=round(mem.peak / 2**20, 1), load_average=load, metrics=outputs.metrics, summary=outputs.summary,
             finished=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), objcam_version=__version__,
+            artifacts=artifacts,
         )
         atomic_write_text(tmp / "stage.json", record.model_dump_json(indent=2))
         self._install(tmp, self.stage_dir(name))
+        integrity.remember(self.stage_dir(name), artifacts, self._memo)
         (self.work / f"{name}.error.log").unlink(missing_ok=True)
-        return StageReport(name, "ran", key, seconds, outputs.summary, outputs.metrics)
+        return StageReport(name, "ran", key, seconds, note + outputs.summary, outputs.metrics)
+
+    def _internal_error(self, name: str, tmp: Path, e: BaseException) -> None:
+        """An unexpected failure: the traceback goes to a log file, the user gets one line pointing at it."""
+        shutil.rmtree(tmp, ignore_errors=True)
+        log = self.work / f"{name}.error.log"
+        atomic_write_text(log, traceback.format_exc())
+        raise StageError(f"stage {name} failed: {type(e).__name__}: {e}", log,
+                         "the traceback is in this file; please report it") from None
 
     def _install(self, tmp: Path, final: Path) -> None:
         """Swap a finished temporary folder into place. At every instant ``final`` is either the old complete

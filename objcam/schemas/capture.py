@@ -41,7 +41,9 @@ class SceneSpec(BaseModel):
                                "any pose and unit: the geometry stage registers it); omitted: reconstructed "
                                "from the views")
     support: str = Field(default="plane", description="'plane' for z = 0, or a support mesh file")
-    plane_size: float = Field(default=20.0, gt=0, description="side of the square support plane, metres")
+    plane_size: float = Field(default=20.0, gt=0, le=1e4, allow_inf_nan=False,
+                              description="side of the square support plane, metres (the scene stage also asks "
+                              "that it cover the object's footprint)")
 
 
 class AlbedoSection(BaseModel):
@@ -52,6 +54,8 @@ class AlbedoSection(BaseModel):
     @field_validator("object", "support", mode="before")
     @classmethod
     def _parse(cls, v):
+        if isinstance(v, bool) or (isinstance(v, list) and any(isinstance(x, bool) for x in v)):
+            raise ValueError("albedo is a number in [0, 1] (or [r, g, b], or a texture), not true/false")
         if isinstance(v, str):
             return TextureAlbedo(texture=v)
         if isinstance(v, list):
@@ -64,14 +68,21 @@ class AlbedoSection(BaseModel):
     @classmethod
     def _range(cls, v):
         vals = [v] if isinstance(v, float) else list(v) if isinstance(v, tuple) else []
-        if any(not (0.0 <= x <= 1.0) for x in vals):
+        if any(not (0.0 <= x <= 1.0) for x in vals):  # NaN fails this too
             raise ValueError("albedo values must lie in [0, 1]")
         return v
 
 
+def _file_name(v: str) -> str:
+    """A name that becomes a folder under objcam/: never "." or ".." (which would write outside its folder)."""
+    if set(v) == {"."}:
+        raise ValueError(f"{v!r} is not a usable name (it names a folder, not a file)")
+    return v
+
+
 class TargetSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", max_length=100)
     image: str | None = Field(default=None, description="linear HDR image (EXR)")
     folder: str | None = Field(default=None, description="folder holding one photo or an exposure bracket "
                                "(raw, 16-bit TIFF, JPEG or EXR), merged to linear HDR by the ingest stage")
@@ -84,9 +95,15 @@ class TargetSpec(BaseModel):
         default=None, description="'absolute': the image is radiance in the envmap's units (synthetic, calibrated); "
         "'relative': radiance times an unknown camera gain, so the envmap is right up to one factor and evaluate "
         "compares up to it. Default: relative for photos (folder), absolute for an image")
-    saturation: float | None = Field(default=None, gt=0, description="pixels >= this in any channel are excluded")
-    noise_sigma: float | None = Field(default=None, ge=0,
+    saturation: float | None = Field(default=None, gt=0, allow_inf_nan=False,
+                                     description="pixels >= this in any channel are excluded")
+    noise_sigma: float | None = Field(default=None, ge=0, allow_inf_nan=False,
                                       description="relative noise of the image, if known (used by transport auto)")
+    encoding: Literal["linear", "srgb"] | None = Field(
+        default=None, description="how to linearise an integer (8- or 16-bit) image: 'srgb' (the sRGB curve) or "
+        "'linear' (code values are linear); without it such an image is refused (a float EXR needs none)")
+
+    _name = field_validator("name")(_file_name)
 
     @model_validator(mode="after")
     def _source(self):
@@ -135,7 +152,8 @@ class ProbeSpec(BaseModel):
     """``[[probes]]``: a chrome ball photographed (one image or a bracket) at the object's place, per illumination."""
 
     model_config = ConfigDict(extra="forbid")
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", max_length=100)
+    _name = field_validator("name")(_file_name)
     folder: str = Field(description="folder holding the ball photo or its exposure bracket")
     illumination: str | None = Field(None, description="the illumination (target name) it is ground truth for "
                                      "(default: its own name)")

@@ -22,3 +22,6 @@ class StageRecord(BaseModel):
     summary: str
     finished: str  # ISO time
     objcam_version: str
+    # relative path -> [size in bytes, sha256] of every file the stage wrote (objcam.pipeline.integrity); None in
+    # records written before artifacts were recorded (such a stage is rebuilt once)
+    artifacts: dict[str, list] | None = None

@@ -23,11 +23,12 @@ from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.scene import AlbedoValue, MeshData, SceneDescription, load_mesh, make_plane
 from objcam.schemas.artifacts import TargetRecord
 from objcam.schemas.capture import CaptureManifest, TextureAlbedo
+from objcam.target_checks import check_in_view, check_negatives, hot_pixels, read_target
 
 NAME = "scene"
 DEPS: tuple[str, ...] = ()
 OPTIONAL_DEPS: tuple[str, ...] = ("ingest", "sfm", "geometry", "texture")
-VERSION = "2"
+VERSION = "3"
 
 # An object taller than this is almost surely in millimetres or centimetres, not metres.
 MAX_PLAUSIBLE_OBJECT_SIZE_M = 5.0
@@ -72,6 +73,15 @@ def _check_object(mesh: MeshData, path: Path, tol: float) -> None:
                          "translate the mesh so it rests on z = 0 (world frame: metres, z up)")
 
 
+def _check_plane(size: float, obj: MeshData, toml: Path) -> None:
+    """The plane must reach past the object's footprint (its shadows fall around it)."""
+    lo, hi = obj.bbox
+    reach = 2.0 * float(np.max(np.abs(np.concatenate([lo[:2], hi[:2]]))))
+    if size < reach:
+        raise InputError(f"plane_size {size:.4g} m does not cover the object's footprint ({reach:.4g} m across)",
+                         toml, "give the support plane's real side in metres (default 20)")
+
+
 def _albedo(spec, capture: Path, out: Path, name: str) -> AlbedoValue:
     if spec is None:
         return AlbedoValue()
@@ -110,12 +120,13 @@ def _target_sources(spec, capture: Path, upstream: dict[str, Path]) -> tuple[Pat
     return cam_path, folder / "image.exr", folder / "valid.png"
 
 
-def _target(spec, capture: Path, out: Path, upstream: dict[str, Path]) -> TargetRecord:
+def _target(spec, capture: Path, out: Path, upstream: dict[str, Path], obj: MeshData) -> tuple[TargetRecord, dict]:
     import cv2
 
     cam_path, img_path, upstream_valid = _target_sources(spec, capture, upstream)
     cam = Camera.load(cam_path)
-    img = read_exr(img_path)
+    check_in_view(cam, obj.vertices, cam_path)
+    img = read_target(img_path, spec.encoding) if spec.image is not None else read_exr(img_path)
     h, w = img.shape[:2]
     if (w, h) != (cam.width, cam.height):
         raise InputError(f"image is {w}x{h} but its camera says {cam.width}x{cam.height}", img_path,
@@ -128,9 +139,6 @@ def _target(spec, capture: Path, out: Path, upstream: dict[str, Path]) -> Target
         n = int((~finite).sum())
         raise InputError(f"image has {n} NaN or infinite pixels", img_path,
                          "re-export it, or mark those pixels invalid in a mask and set them to 0")
-    if rgb.min() < -1e-6 * max(float(np.abs(rgb).max()), 1e-30):
-        raise InputError(f"image has negative values (min {rgb.min():.3g}): not linear radiance", img_path,
-                         "give a linear HDR image (black level subtracted, values >= 0)")
     valid = np.ones((h, w), bool)
     if upstream_valid is not None:  # ingest flagged pixels saturated in every frame of the bracket
         valid &= cv2.imread(str(upstream_valid), cv2.IMREAD_UNCHANGED) > 127
@@ -147,13 +155,17 @@ def _target(spec, capture: Path, out: Path, upstream: dict[str, Path]) -> Target
     if not valid.any():
         raise InputError("no usable pixel (all saturated or masked)", img_path,
                          "use a shorter exposure or check the mask")
+    found = check_negatives(rgb, valid, spec.noise_sigma, img_path)  # zero-mean noise is kept: it is data
+    hot = hot_pixels(rgb, valid, img_path)
+    valid &= ~hot
+    found["hot_pixels_excluded"] = int(hot.sum())
     rel = Path("targets") / spec.name
-    write_exr(out / rel / "image.exr", np.maximum(rgb, 0.0))
+    write_exr(out / rel / "image.exr", rgb)
     write_png(out / rel / "valid.png", valid.astype(np.float64))
     return TargetRecord(name=spec.name, camera=cam, image=str(rel / "image.exr"), valid=str(rel / "valid.png"),
                         illumination=spec.illumination_name, saturation=spec.saturation,
                         noise_sigma=spec.noise_sigma, n_valid=int(valid.sum()), n_pixels=h * w,
-                        radiometry=spec.radiometry or ("absolute" if spec.image is not None else "relative"))
+                        radiometry=spec.radiometry or ("absolute" if spec.image is not None else "relative")), found
 
 
 def _is_plane(mesh: MeshData, tol: float = 1e-6) -> bool:
@@ -181,6 +193,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     if mesh_dir is not None:
         support = MeshData.load_npz(mesh_dir / "support.npz")
     elif manifest.scene.support == "plane":
+        _check_plane(manifest.scene.plane_size, obj, capture / "capture.toml")
         support = make_plane(manifest.scene.plane_size, tex_extent)
     else:
         support = load_mesh(capture / manifest.scene.support)
@@ -205,7 +218,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                              "export the mesh with texture coordinates, or give a constant albedo")
     atomic_write_text(out / "scene.json", desc.model_dump_json(indent=2))
 
-    targets = [_target(t, capture, out, up) for t in manifest.targets]
+    checked = [_target(t, capture, out, up, obj) for t in manifest.targets]
+    targets = [t for t, _ in checked]
     atomic_write_text(out / "targets.json", json.dumps([t.model_dump() for t in targets], indent=2))
 
     lo, hi = obj.bbox
@@ -216,7 +230,12 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         "targets": len(targets),
         "valid_pixel_fraction": float(sum(t.n_valid for t in targets) / sum(t.n_pixels for t in targets)),
         "unknown_albedo": unknown,
+        "target_checks": {t.name: found for t, found in checked},
     }
+    notes = [f"{t.name}: {f['hot_pixels_excluded']} hot pixel(s) excluded" for t, f in checked
+             if f["hot_pixels_excluded"]]
+    notes += [f"{t.name}: {f['negative_pixels']:,} negative pixel(s) kept (within the noise)" for t, f in checked
+              if f["negative_pixels"]]
     summary = (f"{len(obj.faces):,} faces, {metrics['object_height_m'] * 100:.1f} cm tall; {len(targets)} target(s)"
-               + (f"; unknown albedo: {', '.join(unknown)}" if unknown else ""))
+               + (f"; unknown albedo: {', '.join(unknown)}" if unknown else "") + "".join(f"; {n}" for n in notes))
     return StageOutputs(metrics=metrics, summary=summary)

@@ -33,8 +33,30 @@ def load_bundled_envmap(name: str) -> np.ndarray:
     return np.ascontiguousarray(read_exr(path)[..., :3], dtype=np.float32)
 
 
-def load_envmap(spec: str, height: int | None = None) -> np.ndarray:
-    """A bundled name or the path of an EXR (H, 2H) in objcam's convention, optionally resampled to ``height``."""
+# An HDRI's negative texels are compression noise when few and tiny: clamped to 0 with a note. More of them, or
+# deeper, is a broken file: refused.
+ENV_NEG_FRACTION = 0.01  # of the texels
+ENV_NEG_DEPTH = 0.05  # of the map's mean radiance
+
+
+def clamp_tiny_negatives(env: np.ndarray, path: Path) -> tuple[np.ndarray, str | None]:
+    """``env`` with tiny negatives clamped to 0 and a note saying so; InputError for a large negative area."""
+    neg = (env < 0).any(axis=2)
+    if not neg.any():
+        return env, None
+    frac, lo = float(neg.mean()), float(env.min())
+    mean = float(np.mean(np.maximum(env, 0)))
+    if frac > ENV_NEG_FRACTION or -lo > ENV_NEG_DEPTH * max(mean, 1e-30):
+        raise InputError(f"envmap has a large negative area ({int(neg.sum()):,} texels, {frac:.2%}, min {lo:.3g}; "
+                         f"tolerated: {ENV_NEG_FRACTION:.0%} of texels down to -{ENV_NEG_DEPTH:g} x the mean "
+                         f"{mean:.3g})", path, "give a radiance map (values >= 0)")
+    note = f"envmap {path.name}: {int(neg.sum()):,} slightly negative texel(s) (min {lo:.3g}) clamped to 0"
+    return np.maximum(env, 0.0), note
+
+
+def load_envmap(spec: str, height: int | None = None, notes: list[str] | None = None) -> np.ndarray:
+    """A bundled name or the path of an EXR (H, 2H) in objcam's convention, optionally resampled to ``height``.
+    Tiny negative texels are clamped (``clamp_tiny_negatives``), with a note appended to ``notes``."""
     from objcam.envmap import resample_to_height
     from objcam.image_io import read_exr
 
@@ -52,8 +74,11 @@ def load_envmap(spec: str, height: int | None = None) -> np.ndarray:
         if env.shape[1] != 2 * env.shape[0]:
             raise InputError(f"envmap is {env.shape[1]}x{env.shape[0]}, not 2H x H", path,
                              "give an equirectangular map twice as wide as high")
-        if not np.all(np.isfinite(env)) or env.min() < 0:
-            raise InputError("envmap has negative, NaN or infinite values", path)
+        if not np.all(np.isfinite(env)):
+            raise InputError("envmap has NaN or infinite values", path, "re-export it")
+        env, note = clamp_tiny_negatives(env, path)
+        if note and notes is not None:
+            notes.append(note)
     if height is not None and env.shape[0] != height:
         env = resample_to_height(env.astype(np.float64), height)
     return np.ascontiguousarray(env, dtype=np.float32)

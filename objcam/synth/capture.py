@@ -317,13 +317,16 @@ def synthesize(out_dir: str | Path, params: SynthParams | None = None) -> dict:
         truth_albedo[key] = entry | {"known": known}
 
     # environment
-    env = load_envmap(params.envmap, params.envmap_height).astype(np.float64)
+    notes: list[str] = []
+    env = load_envmap(params.envmap, params.envmap_height, notes).astype(np.float64)
     targets = target_names(params)
     rotations = sorted({r for _, _, r in targets}, key=params.rotations_deg.index)
     per_target_env = len(rotations) > 1
     cams = [c.camera(params.object_height) for c in params.cameras]
 
     summary: dict = {"out_dir": str(out), "targets": {}, "render_seconds": 0.0}
+    if notes:
+        summary["notes"] = notes
     truth_targets: dict = {}
     envmaps_rel: dict = {}
     toml_targets: list[dict] = []
