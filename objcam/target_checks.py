@@ -15,7 +15,7 @@ from objcam.errors import InputError
 # puts 0.13% there), is not noise: a wrong black level, a signed difference image, a broken export.
 NEG_SIGMAS = 6.0
 NEG_AREA = 0.01
-# Hot pixels: brighter than HOT_FACTOR x the brightest of its 8 neighbours and x the image's 99.9th percentile.
+# Hot pixels: brighter than HOT_FACTOR x the brightest of its 8 neighbours and x the image's 99th percentile.
 # A diffuse scene is smooth at the pixel scale (an edge pixel has a bright neighbour on its lit side).
 HOT_FACTOR = 20.0
 HOT_MAX_FRACTION = 1e-3  # more than this many isolated spikes: refuse rather than mask
@@ -98,11 +98,11 @@ def hot_pixels(rgb: np.ndarray, valid: np.ndarray, path: Path) -> np.ndarray:
     foot = np.ones((3, 3), bool)
     foot[1, 1] = False
     neigh = maximum_filter(lum, footprint=foot, mode="nearest")
-    ref = float(np.percentile(lum[valid], 99.9)) if valid.any() else 0.0
+    ref = float(np.percentile(lum[valid], 99.0)) if valid.any() else 0.0
     hot = valid & (lum > HOT_FACTOR * np.maximum(neigh, 0)) & (lum > HOT_FACTOR * max(ref, 0)) & (lum > 0)
     if hot.sum() > max(1, HOT_MAX_FRACTION * valid.sum()):
         raise InputError(f"image has {int(hot.sum())} isolated hot pixels (over {HOT_FACTOR:g}x their neighbours "
-                         "and the image's 99.9th percentile)", path, "fix the image, or mask those pixels")
+                         "and the image's 99th percentile)", path, "fix the image, or mask those pixels")
     return hot
 
 

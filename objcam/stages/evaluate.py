@@ -49,13 +49,35 @@ class Params(BaseModel):
                                          "none elsewhere")
 
 
+def truth_meta(capture: Path) -> dict | None:
+    """truth/truth.json as a dict (None when absent); an InputError naming it when it is not a JSON object."""
+    meta = Path(capture) / "truth" / "truth.json"
+    if not meta.is_file():
+        return None
+    try:
+        info = json.loads(meta.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"truth.json is not valid JSON ({str(e)[:80]})", meta,
+                         "rewrite it (objcam synth writes it) or remove truth/") from None
+    if not isinstance(info, dict) or not isinstance(info.get("envmaps", {}), dict) \
+            or not isinstance(info.get("albedo", {}) or {}, dict):
+        raise InputError("truth.json is not an object with 'envmaps' and 'albedo' objects", meta,
+                         "see truth/ in data_layout.md, or remove truth/")
+    return info
+
+
 def truth_envmap_path(capture: Path, target: str) -> Path | None:
     """Where a synthetic capture keeps the true envmap of ``target`` (see data_layout.md, truth/)."""
-    meta = capture / "truth" / "truth.json"
-    if meta.is_file():
-        info = json.loads(meta.read_text())
+    from objcam.pipeline.inputs import check_input
+
+    info = truth_meta(capture)
+    if info is not None:
         rel = info.get("envmaps", {}).get(target)
         if rel:
+            if not isinstance(rel, str):
+                raise InputError(f"truth.json envmaps.{target} is not a path", capture / "truth" / "truth.json")
+            if not check_input(capture / rel, capture):
+                raise InputError("truth envmap named in truth.json not found", capture / rel)
             return capture / rel
     for cand in (capture / "truth" / target / "envmap.exr", capture / "truth" / "envmap.exr"):
         if cand.is_file():
@@ -89,10 +111,10 @@ def truth_albedo_image(capture: Path, scene_folder: Path, transport) -> np.ndarr
     from objcam.scene import AlbedoValue, MeshData, SceneDescription, make_plane
     from objcam.transport.geometry import SceneGeometry, primary_samples
 
-    meta_path = capture / "truth" / "truth.json"
-    if not meta_path.is_file():
+    info = truth_meta(capture)
+    if info is None:
         return None
-    meta = json.loads(meta_path.read_text()).get("albedo") or {}
+    meta = info.get("albedo") or {}
     desc = SceneDescription.model_validate_json((scene_folder / "scene.json").read_text())
     with tempfile.TemporaryDirectory(prefix="objcam-truth-albedo-") as tmp:
         root = Path(tmp)
@@ -207,6 +229,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             inv = inv or True
         else:
             truth_full = read_exr(tpath)[..., :3].astype(np.float64)
+            if not np.all(np.isfinite(truth_full)):
+                raise InputError("truth envmap has NaN or infinite values", tpath, "re-export it")
             if truth_full.shape[1] != 2 * truth_full.shape[0]:
                 raise InputError(f"truth envmap is {truth_full.shape[1]}x{truth_full.shape[0]}, not 2H x H",
                                  tpath)

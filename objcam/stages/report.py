@@ -46,6 +46,10 @@ class Params(BaseModel):
                                       "checkout, if there is one")
 
 
+# The benchmark results it plots live in the repository, not the capture (objcam.pipeline.inputs' confinement).
+READS_OUTSIDE_CAPTURE = True
+
+
 def input_files(capture: Path) -> list[Path]:
     """The default benchmark results: a new benchmark run redraws the speed-against-error plot."""
     from objcam.report.speed import find_bench_results

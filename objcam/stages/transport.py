@@ -77,6 +77,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     import time
 
     from objcam.schemas.artifacts import SceneArtifact
+    from objcam.transport import budget
     from objcam.transport.auto import estimate_relative_noise
     from objcam.transport.build import BuildSettings, build_camera
     from objcam.transport.geometry import SceneGeometry
@@ -94,6 +95,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         raise StageError("transport.supersample > 1 is solved only with a known albedo, and this capture leaves "
                          "the " + ("object's" if not desc.albedo_object.known else "support's") + " albedo unknown",
                          inputs.capture / "capture.toml", "set transport.supersample=1")
+    for cam_targets in groups.values():  # the size first: refuse what the machine cannot hold before building
+        cam, f = cam_targets[0].camera, downsample_for(cam_targets[0].camera, params)
+        est = budget.estimate((cam.height // f) * (cam.width // f), 2 * fine_height * fine_height)
+        budget.check(est, inputs.capture / "capture.toml")
     geo = SceneGeometry.load(desc, art.folder, env_height=fine_height,
                              upsample=params.path_upsample)
     mapping: dict[str, str] = {}
