@@ -86,6 +86,12 @@ class Camera(BaseModel):
                              "world_from_camera (see data_layout.md)") from None
         except json.JSONDecodeError as e:
             raise InputError(f"camera file is not valid JSON ({e.msg}, line {e.lineno})", path) from None
+        except UnicodeDecodeError:
+            raise InputError("camera file is not a text (JSON) file", path) from None
+        except IsADirectoryError:
+            raise InputError("camera file is a folder", path, "give the JSON file") from None
+        if not isinstance(data, dict):
+            raise InputError("camera file is not a JSON object", path, "see the camera format in data_layout.md")
         try:
             return cls.model_validate(data)
         except Exception as e:  # pydantic.ValidationError: condense to one line

@@ -160,6 +160,7 @@ def test_inputs_outside_the_capture_are_refused_unless_allowed(tmp_path, capsys,
     assert main(["scene", str(cap), "--quiet", "--allow-outside-inputs"]) == 0
 
 
+@pytest.mark.timeout(60)
 def test_fifo_and_device_inputs_fail_fast(tmp_path, capsys):
     """A FIFO would block the content hash forever (the test's timeout is the hang detector)."""
     cap = make_capture(tmp_path / "cap")

@@ -12,7 +12,6 @@ from pathlib import Path
 import pytest
 
 from objcam.errors import ObjcamError
-from objcam.pipeline import workdir
 from objcam.pipeline.engine import Pipeline, parse_overrides
 from tests.test_pipeline import runs, toy  # noqa: F401  (the fixture)
 
@@ -49,7 +48,7 @@ def test_work_refuses_a_folder_objcam_did_not_make(toy, tmp_path):  # noqa: F811
     assert thesis.read_text() == "chapter 1"
     new = tmp_path / "new"  # a new folder: made, marked, and accepted again on the next run
     assert len(Pipeline(toy, work=new).run()) == 3
-    assert (new / workdir.MARKER).is_file()
+    assert (new / ".objcam-work").is_file()  # objcam.pipeline.workdir.MARKER
     assert {r.status for r in Pipeline(toy, work=new).run()} == {"cached"}
 
 
