@@ -11,7 +11,7 @@ DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true --tar
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-fuzz status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -46,7 +46,8 @@ test: $(STAMP)
 #   probe     chrome-ball unwrap against the true envmap (issue 5; ~5 min)
 #   geometry  plane, known-shape registration, reconstruction, texture (issue 4; ~20 min)
 #   e2e       objcam run from raw DNGs against its known-geometry twin (issues 3, 4; ~1 h the first time)
-BENCH ?= core analysis joint probe geometry e2e
+#   fuzz      2,000 generated hostile captures through the CLI: tracebacks, hangs, writes outside (issue 24; ~10 min)
+BENCH ?= core analysis joint probe geometry e2e fuzz
 bench: $(addprefix bench-,$(BENCH))
 bench-core: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
@@ -60,6 +61,8 @@ bench-geometry: $(STAMP)
 	$(BIN)/python -m bench.geometry_bench --write $(ARGS)
 bench-e2e: $(STAMP)
 	$(BIN)/python -m bench.e2e_bench --write $(ARGS)
+bench-fuzz: $(STAMP)
+	$(BIN)/python -m bench.fuzz_bench --write $(ARGS)
 
 # occluder design: bunny, sphere and coded mask (plus any --mesh FILE in ARGS) compared on one setup
 DESIGN_OUT ?= demo/design
