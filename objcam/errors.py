@@ -14,7 +14,13 @@ class ObjcamError(Exception):
         parts = [f"{self.path}: {message}" if self.path is not None else message]
         if fix:
             parts.append(f"fix: {fix}")
-        super().__init__(" -- ".join(parts).replace("\n", " "))
+        super().__init__(one_line(" -- ".join(parts)))
+
+
+def one_line(text: str) -> str:
+    """``text`` on one printable line: line breaks of every kind and control characters (a capture's names and
+    keys may hold any, terminal escapes included) become spaces."""
+    return "".join(ch if ch.isprintable() else " " for ch in " ".join(text.splitlines()))
 
 
 class InputError(ObjcamError):

@@ -90,6 +90,15 @@ def test_unknown_camera_key_is_refused(tmp_path, capsys):
     assert_one_line_error(*run_scene(cap, capsys), "t0.json", "focal")
 
 
+@pytest.mark.parametrize("key", ["a\u2028b", "x\x1cy", "\x1b[31mred", "line\rbreak"])
+def test_odd_characters_in_an_unknown_key_stay_on_one_line(tmp_path, capsys, key):
+    cap = make_capture(tmp_path / "cap")
+    _write_camera(cap, _camera_dict(cap) | {key: 1})
+    code, err = run_scene(cap, capsys)
+    assert_one_line_error(code, err, "t0.json", "Extra inputs")
+    assert "\x1b" not in err
+
+
 def test_srgb_png_target_is_refused_unless_encoding_given(tmp_path, capsys):
     import cv2
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from rich.markup import escape
 
-from objcam.errors import ObjcamError
+from objcam.errors import ObjcamError, one_line
 from objcam.pipeline import graph
 
 
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{e.filename}: " if e.filename else ""
         fix = "free some space or give --work DIR elsewhere" if e.errno in (errno.ENOSPC, errno.EDQUOT) else \
             "give a writable artifact folder with --work DIR"
-        print(f"objcam: error: {where}{e.strerror} -- fix: {fix}", file=sys.stderr)
+        print(one_line(f"objcam: error: {where}{e.strerror} -- fix: {fix}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("objcam: interrupted; finished stages are kept, rerun to resume", file=sys.stderr)

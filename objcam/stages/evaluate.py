@@ -132,6 +132,9 @@ def truth_albedo_image(capture: Path, scene_folder: Path, transport) -> np.ndarr
                 values[key] = AlbedoValue(texture=f"albedo_{key}.exr") if src is not None else AlbedoValue(rgb=have.rgb)
                 continue
             if e.get("texture"):
+                from objcam.pipeline.inputs import check_input
+
+                check_input(capture / str(e["texture"]), capture)  # inside the capture, a regular file
                 write_exr(root / f"albedo_{key}.exr", read_exr(capture / e["texture"])[..., :3])
                 values[key] = AlbedoValue(texture=f"albedo_{key}.exr")
                 if key == "support" and desc.support_is_plane and e.get("extent"):
