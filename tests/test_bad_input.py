@@ -141,7 +141,7 @@ def test_camera_file_malformed(tmp_path, capsys):
 def test_image_not_an_image(tmp_path, capsys):
     cap = make_capture(tmp_path / "cap")
     (cap / "targets" / "t0.exr").write_bytes(b"not an exr at all")
-    assert_one_line_error(*run_scene(cap, capsys), "t0.exr", "is named .exr but")
+    assert_one_line_error(*run_scene(cap, capsys), "t0.exr", "is named .exr but", "not an image")
 
 
 def test_saturated_pixels_are_flagged_not_fitted(tmp_path, capsys):

@@ -25,6 +25,7 @@ MAGIC: dict[str, tuple[bytes, ...]] = {
     ".ply": (b"ply",),
     ".json": (),
 }
+_IMAGES = {".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".dng", ".pfm", ".hdr"}
 _ASCII_FIRST = {".json", ".toml", ".obj", ".off"}  # text formats: a NUL byte in the head means binary junk
 
 ALLOW_OUTSIDE_FIX = "move it into the capture folder, or pass --allow-outside-inputs to read it where it is"
@@ -73,7 +74,8 @@ def sniff(path: Path) -> None:
         raise InputError("input file is empty", path, "re-export it")
     if magics and not any(head.startswith(m) for m in magics):
         found = next((e for e, ms in MAGIC.items() if ms and any(head.startswith(m) for m in ms)), None)
-        what = f"its content is {found[1:].upper()}" if found else "its content is not that format"
+        what = (f"its content is {found[1:].upper()}" if found else "it is not an image in that format"
+                if ext in _IMAGES else "its content is not that format")
         raise InputError(f"file is named {ext} but {what}", path,
                          f"convert it to a real {ext[1:].upper()} file (or give it its true extension)")
     if ext in _ASCII_FIRST and b"\x00" in head:
