@@ -33,8 +33,11 @@ def read_target(path: Path, encoding: str | None) -> np.ndarray:
     from objcam.image_io import read_exr
 
     inp = oiio.ImageInput.open(str(path))
-    fmt = str(inp.spec().format) if inp is not None else ""
-    if inp is not None:
+    if inp is None:
+        oiio.geterror()  # read_exr below reports it, naming the file; a pending error would print at exit
+        fmt = ""
+    else:
+        fmt = str(inp.spec().format)
         inp.close()
     img = read_exr(path)
     if fmt not in ("float", "half", "double"):

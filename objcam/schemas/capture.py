@@ -36,11 +36,11 @@ AlbedoSpec = Union[float, RGB, TextureAlbedo]
 
 class SceneSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    object: str | None = Field(default=None, description="object mesh (PLY/OBJ/STL), world metres, resting on "
+    object: str | None = Field(default=None, min_length=1, description="object mesh (PLY/OBJ/STL), world metres, resting on "
                                "z = 0; for a photographed capture the known shape (e.g. the 3D-printed model, "
                                "any pose and unit: the geometry stage registers it); omitted: reconstructed "
                                "from the views")
-    support: str = Field(default="plane", description="'plane' for z = 0, or a support mesh file")
+    support: str = Field(default="plane", min_length=1, description="'plane' for z = 0, or a support mesh file")
     plane_size: float = Field(default=20.0, gt=0, le=1e4, allow_inf_nan=False,
                               description="side of the square support plane, metres (the scene stage also asks "
                               "that it cover the object's footprint)")
@@ -83,14 +83,14 @@ def _file_name(v: str) -> str:
 class TargetSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", max_length=100)
-    image: str | None = Field(default=None, description="linear HDR image (EXR)")
-    folder: str | None = Field(default=None, description="folder holding one photo or an exposure bracket "
+    image: str | None = Field(default=None, min_length=1, description="linear HDR image (EXR)")
+    folder: str | None = Field(default=None, min_length=1, description="folder holding one photo or an exposure bracket "
                                "(raw, 16-bit TIFF, JPEG or EXR), merged to linear HDR by the ingest stage")
-    camera: str | None = Field(default=None, description="camera JSON: width, height, fx, fy, cx, cy, "
+    camera: str | None = Field(default=None, min_length=1, description="camera JSON: width, height, fx, fy, cx, cy, "
                                "world_from_camera; omitted in a photographed capture (the sfm stage poses it)")
     illumination: str | None = Field(default=None, description="targets with the same illumination name show "
                                      "the same envmap from different cameras (default: the target's own name)")
-    mask: str | None = Field(default=None, description="optional image, nonzero = usable pixel")
+    mask: str | None = Field(default=None, min_length=1, description="optional image, nonzero = usable pixel")
     radiometry: Literal["absolute", "relative"] | None = Field(
         default=None, description="'absolute': the image is radiance in the envmap's units (synthetic, calibrated); "
         "'relative': radiance times an unknown camera gain, so the envmap is right up to one factor and evaluate "
