@@ -50,6 +50,8 @@ def test_work_refuses_a_folder_objcam_did_not_make(toy, tmp_path):  # noqa: F811
     assert len(Pipeline(toy, work=new).run()) == 3
     assert (new / ".objcam-work").is_file()  # objcam.pipeline.workdir.MARKER
     assert {r.status for r in Pipeline(toy, work=new).run()} == {"cached"}
+    (new / ".objcam-work").unlink()  # a work folder of an older objcam (no marker) is known by its lock
+    assert {r.status for r in Pipeline(toy, work=new).run()} == {"cached"}
 
 
 @pytest.mark.parametrize("damage", ["truncate", "same_size_edit", "delete", "stage_json"])

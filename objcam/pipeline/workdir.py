@@ -37,7 +37,9 @@ def prepare(work: Path, explicit: bool) -> None:
     without objcam's marker is refused (its files would be replaced or deleted)."""
     refuse_links(work)
     marker = work / MARKER
-    if explicit and work.is_dir() and not marker.is_file() and any(work.iterdir()):
+    # a folder from an objcam older than the marker is recognised by its lock file (every run makes one)
+    ours = marker.is_file() or ((work / LOCK).is_file() and not (work / LOCK).is_symlink())
+    if explicit and work.is_dir() and not ours and any(work.iterdir()):
         raise ObjcamError("--work names a folder that is not empty and was not made by objcam", work,
                           "give a new or empty folder (objcam replaces what is in its work folder)")
     try:
