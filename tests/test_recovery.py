@@ -145,6 +145,9 @@ def test_transport_size_is_checked_before_building(reference, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert_one_line_error(code, err, "GiB", "transport.env_height", "131,072 texels")
     assert time.perf_counter() - t0 < 10
+    rec = json.loads((reference[0] / "objcam" / "transport" / "stage.json").read_text())  # a build that fits
+    # 192 px x 128 texels: A 0.3 MB + 2 Gram 0.8 MB, recorded beside what it used
+    assert 0.0005 < rec["metrics"]["planned_peak_gib"] < 0.002 and rec["metrics"]["planned_seconds"] >= 0
 
 
 @pytest.mark.parametrize("damage", ["malformed", "list", "nan_envmap"])

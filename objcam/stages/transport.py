@@ -95,10 +95,12 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         raise StageError("transport.supersample > 1 is solved only with a known albedo, and this capture leaves "
                          "the " + ("object's" if not desc.albedo_object.known else "support's") + " albedo unknown",
                          inputs.capture / "capture.toml", "set transport.supersample=1")
+    planned = {"bytes": 0, "seconds": 0.0}
     for cam_targets in groups.values():  # the size first: refuse what the machine cannot hold before building
         cam, f = cam_targets[0].camera, downsample_for(cam_targets[0].camera, params)
         est = budget.estimate((cam.height // f) * (cam.width // f), 2 * fine_height * fine_height)
         budget.check(est, inputs.capture / "capture.toml")
+        planned = {"bytes": max(planned["bytes"], est["bytes"]), "seconds": planned["seconds"] + est["seconds"]}
     geo = SceneGeometry.load(desc, art.folder, env_height=fine_height,
                              upsample=params.path_upsample)
     mapping: dict[str, str] = {}
@@ -130,6 +132,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         metrics.update(first)
     metrics.update(totals)
     metrics["cameras"] = len(groups)
+    metrics["planned_peak_gib"] = round(planned["bytes"] / 2**30, 3)  # objcam.transport.budget's estimate
+    metrics["planned_seconds"] = round(planned["seconds"], 1)
     metrics["seconds_total"] = round(time.perf_counter() - t0, 3)
     chosen = ",".join(sorted({str(m.get("model")) for m in per_cam}))
     k_or_spp = f"K={params.samples}" if params.model != "path" else f"spp={params.path_spp}"
