@@ -254,8 +254,20 @@ def draw_capture(draw: Callable, sandbox: Path) -> dict:
     else:
         (cap / "capture.toml").write_text(text)
 
-    work = _kind(draw, "work" in bad, ["lock_link", "work_link", "tmp_link", "old_link", "lock_fifo"])
-    if work == "lock_fifo":
+    work = _kind(draw, "work" in bad, ["lock_link", "work_link", "tmp_link", "old_link", "lock_fifo", "stage_fifo",
+                                       "memo_fifo", "memo_link", "memo_garbage"])
+    if work in ("stage_fifo", "memo_fifo", "memo_link", "memo_garbage"):
+        (cap / "objcam" / "scene").mkdir(parents=True)
+        if work == "stage_fifo":
+            os.mkfifo(cap / "objcam" / "scene" / "stage.json")
+        elif work == "memo_fifo":
+            os.mkfifo(cap / "objcam" / ".hashes.json")
+        elif work == "memo_link":
+            (cap / "objcam" / ".hashes.json").symlink_to("/dev/zero")
+        else:
+            (cap / "objcam" / ".hashes.json").write_text(draw(st.sampled_from(['{"a": 5}', "[1]", '{"x": [1, 2]}',
+                                                                              "nan", "{"])))
+    elif work == "lock_fifo":
         (cap / "objcam").mkdir()
         os.mkfifo(cap / "objcam" / ".lock")
     elif work == "lock_link":

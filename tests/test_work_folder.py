@@ -132,3 +132,22 @@ def test_cli_disk_errors_are_one_line(toy, monkeypatch, capsys):  # noqa: F811
     assert cli.main(["run", str(toy), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "No space left" in err and "Traceback" not in err
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("plant", ["stage_fifo", "memo_fifo", "memo_dev_zero", "memo_not_a_dict"])
+def test_planted_records_neither_hang_nor_mislead(toy, plant):  # noqa: F811
+    """A capture sent with its objcam/ folder may hold FIFOs or links where objcam keeps its records."""
+    work = toy / "objcam"
+    (work / "first").mkdir(parents=True)
+    if plant == "stage_fifo":
+        os.mkfifo(work / "first" / "stage.json")
+    elif plant == "memo_fifo":
+        os.mkfifo(work / ".hashes.json")
+    elif plant == "memo_dev_zero":
+        (work / ".hashes.json").symlink_to("/dev/zero")
+    else:
+        (work / ".hashes.json").write_text('{"' + str((toy / "input.txt").resolve()) + '": 5}')
+    reps = {r.stage: r.status for r in Pipeline(toy).run()}
+    assert reps == {"first": "ran", "second": "ran", "third": "ran"}
+    assert (work / "first" / "value.txt").read_text() == "6.0"

@@ -28,7 +28,7 @@ def file_digest(path: Path, memo: dict[str, list] | None = None) -> str:
     stamp = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
     if memo is not None:
         hit = memo.get(key)
-        if hit and len(hit) == 5 and hit[:4] == stamp:
+        if isinstance(hit, list) and len(hit) == 5 and hit[:4] == stamp:
             return hit[4]
     h = hashlib.sha256()
     with open(path, "rb") as f:

@@ -10,6 +10,7 @@ import json
 import math
 import os
 import shutil
+import stat
 import threading
 import time
 import traceback
@@ -59,6 +60,14 @@ def parse_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
                               "give a finite number (see the stage's params)")
         out.setdefault(stage, {})[param] = parsed
     return out
+
+
+def _regular(path: Path) -> bool:
+    """True when ``path`` itself (not followed) is a regular file."""
+    try:
+        return stat.S_ISREG(os.lstat(path).st_mode)
+    except OSError:
+        return False
 
 
 def _non_finite(value: Any) -> bool:
@@ -187,9 +196,11 @@ class Pipeline:
 
     def record(self, name: str) -> StageRecord | None:
         p = self.stage_dir(name) / "stage.json"
+        if not _regular(p):  # a FIFO or a link planted in a capture's objcam/ would hang or lead elsewhere
+            return None
         try:
             return StageRecord.model_validate_json(p.read_text())
-        except (FileNotFoundError, ValidationError, ValueError):
+        except (OSError, ValidationError, ValueError):
             return None
 
     def status(self) -> list[dict[str, Any]]:
@@ -246,9 +257,10 @@ class Pipeline:
 
     def _load_memo(self) -> None:
         try:
-            self._memo = json.loads((self.work / HASH_MEMO).read_text())
-        except (FileNotFoundError, ValueError):
-            self._memo = {}
+            memo = json.loads((self.work / HASH_MEMO).read_text()) if _regular(self.work / HASH_MEMO) else {}
+        except (OSError, ValueError):
+            memo = {}
+        self._memo = memo if isinstance(memo, dict) else {}
 
     def _save_memo(self) -> None:
         atomic_write_text(self.work / HASH_MEMO, json.dumps(self._memo))
