@@ -255,7 +255,7 @@ def draw_capture(draw: Callable, sandbox: Path) -> dict:
         (cap / "capture.toml").write_text(text)
 
     work = _kind(draw, "work" in bad, ["lock_link", "work_link", "tmp_link", "old_link", "lock_fifo", "stage_fifo",
-                                       "memo_fifo", "memo_link", "memo_garbage"])
+                                       "memo_fifo", "memo_link", "memo_garbage", "stage_link"])
     if work in ("stage_fifo", "memo_fifo", "memo_link", "memo_garbage"):
         (cap / "objcam" / "scene").mkdir(parents=True)
         if work == "stage_fifo":
@@ -267,6 +267,9 @@ def draw_capture(draw: Callable, sandbox: Path) -> dict:
         else:
             (cap / "objcam" / ".hashes.json").write_text(draw(st.sampled_from(['{"a": 5}', "[1]", '{"x": [1, 2]}',
                                                                               "nan", "{"])))
+    elif work == "stage_link":
+        (cap / "objcam").mkdir()
+        (cap / "objcam" / "scene").symlink_to(out)
     elif work == "lock_fifo":
         (cap / "objcam").mkdir()
         os.mkfifo(cap / "objcam" / ".lock")

@@ -151,3 +151,16 @@ def test_planted_records_neither_hang_nor_mislead(toy, plant):  # noqa: F811
     reps = {r.stage: r.status for r in Pipeline(toy).run()}
     assert reps == {"first": "ran", "second": "ran", "third": "ran"}
     assert (work / "first" / "value.txt").read_text() == "6.0"
+
+
+def test_a_stage_folder_that_is_a_link_is_replaced_not_followed(toy, tmp_path):  # noqa: F811
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "value.txt").write_text("forged")
+    (toy / "objcam").mkdir()
+    (toy / "objcam" / "first").symlink_to(elsewhere)
+    reps = {r.stage: r.status for r in Pipeline(toy).run()}
+    assert reps["first"] == "ran"
+    assert not (toy / "objcam" / "first").is_symlink()
+    assert (toy / "objcam" / "first" / "value.txt").read_text() == "6.0"
+    assert (elsewhere / "value.txt").read_text() == "forged" and sorted(os.listdir(elsewhere)) == ["value.txt"]

@@ -196,8 +196,8 @@ class Pipeline:
 
     def record(self, name: str) -> StageRecord | None:
         p = self.stage_dir(name) / "stage.json"
-        if not _regular(p):  # a FIFO or a link planted in a capture's objcam/ would hang or lead elsewhere
-            return None
+        if self.stage_dir(name).is_symlink() or not _regular(p):
+            return None  # a link, FIFO or device planted in a capture's objcam/ would lead elsewhere or hang
         try:
             return StageRecord.model_validate_json(p.read_text())
         except (OSError, ValidationError, ValueError):
