@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -67,20 +68,25 @@ def test_bad_intrinsics_are_refused(tmp_path, capsys, field, value, needle):
     assert_one_line_error(*run_scene(cap, capsys), "t0.json", needle)
 
 
-@pytest.mark.parametrize("damage", ["nan_translation", "not_orthonormal", "reflection"])
+@pytest.mark.parametrize("damage", ["nan_translation", "not_orthonormal", "reflection", "huge"])
 def test_bad_pose_is_refused(tmp_path, capsys, damage):
     cap = make_capture(tmp_path / "cap")
     d = _camera_dict(cap)
     m = np.asarray(d["world_from_camera"])
     if damage == "nan_translation":
         m[0, 3] = np.nan
+    elif damage == "huge":  # finite, but r^T r overflows: one line, no RuntimeWarning on stderr
+        m[1, 2] = 1e300
     elif damage == "not_orthonormal":
         m[:3, 0] *= 1.1
     else:
         m[:3, 0] *= -1
     d["world_from_camera"] = m.tolist()
     _write_camera(cap, d)
-    assert_one_line_error(*run_scene(cap, capsys), "t0.json", "world_from_camera")
+    with warnings.catch_warnings(record=True) as caught:  # a warning would be a second line on stderr
+        warnings.simplefilter("always")
+        assert_one_line_error(*run_scene(cap, capsys), "t0.json", "world_from_camera")
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in caught]
 
 
 def test_unknown_camera_key_is_refused(tmp_path, capsys):
