@@ -101,11 +101,11 @@ def summary_table(rows: list[dict], noises) -> list[str]:
 
 def case_table(rows: list[dict]) -> list[str]:
     bands = " / ".join(f"{lo:g}-{hi:g}" for lo, hi in BANDS)
-    lines = ["| target | object, camera el., albedo | status | SSIM | masked | const. SSIM | row-mean SSIM | "
+    lines = ["| target | object, camera el., albedo | noise (all) | status | SSIM | masked | const. SSIM | row-mean SSIM | "
              "tm RMSE | / row-mean | rel. RMSE | band energy " + bands + " | brightest (deg) | contrast | A (s) | "
-             "solve (s) |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+             "solve (s) |", "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for r in rows:
-        geo = f"{r['object']}, {r['elevation_deg']:g}, {r['albedo']}"
+        geo = f"{r['object']}, {r['elevation_deg']:g}, {r['albedo']} | {100 * r['noise_sigma']:.2g}%"
         if r["status"] != "ok":
             why = f" ({r['negative_pixels']} px < 0, min {r['min']:.2g})" if r["negative_pixels"] else ""
             lines.append(f"| {r['target']} | {geo} | {r['status']}{why} |" + " |" * 12)
@@ -136,7 +136,9 @@ def markdown(rows: list[dict], header: list[str], noises) -> str:
              f"Beat it in tonemapped RMSE ({len(beat_t)} of {len(s)}): " + (", ".join(beat_t) or "none") + ".", "",
              "### Every target", "",
              "Band energy: estimate / truth solid-angle luminance energy per elevation band above the horizon "
-             "(degrees). Contrast: the truth's brightest source's peak over the next one's. A (s): the transport "
+             "(degrees). Noise (all): capture.toml's noise_sigma, hypot(the added noise, the render's own "
+             "Monte Carlo noise), both relative to the median pixel. Contrast: the truth's brightest source's peak "
+             "over the next one's. A (s): the transport "
              "stage's wall time, one A per geometry (shared by its targets).", "",
              *case_table(rows)]
     return "\n".join(lines) + "\n"
