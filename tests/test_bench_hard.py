@@ -98,3 +98,25 @@ def test_a_tiny_case_is_a_capture_objcam_runs(tmp_path):
         # the lamp, 30 degrees up at azimuth 30: measured 0.7-1.0 degrees off (one solve texel is 5.6)
         assert r["brightest_angle_deg"] < 6.0, r
         assert set(r["baselines"]) == {"constant", "row_mean"} and len(r["band_energy"]) == 4
+
+
+def _row(target, noise, ssim, rm_ssim=0.5, bands=(1.0, 1.0, 1.0, 1.0), angle=1.0, contrast=10.0, status="ok"):
+    return {"target": target, "noise": noise, "status": status, "error": "" if status == "ok" else "refused here",
+            "ssim": ssim, "band_energy": list(bands), "brightest_angle_deg": angle, "source_contrast": contrast,
+            "beats_row_mean": {"ssim": ssim > rm_ssim, "tonemapped_rmse": ssim > rm_ssim}}
+
+
+def test_the_blocks_targets_say_met_missed_and_not_measured():
+    from bench.hard.report import targets
+
+    rows = [_row("a", 0.02, 0.72), _row("b", 0.02, 0.71), _row("c", 0.02, 0.40, bands=(1.0, 2.5, 1.0, 1.0)),
+            _row("d", 0.005, 0.80), _row("e", 0.005, 0.79, angle=9.0), _row("f", 0.005, 0.1, status="refused")]
+    text = "\n".join(targets(rows))
+    assert "**missed**: SSIM at 2% noise: median 0.710 (>= 0.7), worst 0.400 (>= 0.45) (3 solved)" in text
+    # the median is met on the solved ones, but a refused target means the level was not fully measured
+    assert "**missed**: SSIM at 0.5% noise: median 0.795 (>= 0.78) (2 solved, 1 not solved: not measured)" in text
+    assert "[0.67, 1.5] of the truth's energy in >= 90% of targets: 80%" in text
+    assert "**missed**: every band within [0.5, 2] in all targets: 80%" in text
+    assert "within 5.6 deg in >= 95% of the 5 targets whose brightest source is >= 3x the next: 80%" in text
+    assert "met: beats the row-mean oracle in SSIM in >= 80% of targets (issue 28): 80%" in text
+    assert "1 of 6 targets refused: refused here (f)" in text

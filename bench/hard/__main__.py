@@ -42,9 +42,11 @@ def run_capture(root: Path, geo, group, renders, camera) -> list[dict]:
     records = write_capture(root, geo, group, renders, camera)
     status = {r["target"]: ("ok", "") for r in records}
     first_message = ""
+    cached: dict[str, bool] = {}
     for attempt in range(2):
         try:
-            Pipeline(root, quiet=True).run(until="evaluate")
+            # issue 28: a time read from a stage that came from the cache is an earlier run's; flag it
+            cached = {rep.stage: rep.status == "cached" for rep in Pipeline(root, quiet=True).run(until="evaluate")}
             break
         except ObjcamError as e:
             msg = " ".join(str(e).split()).replace(f"{root.resolve()}/", "")
@@ -70,6 +72,7 @@ def run_capture(root: Path, geo, group, renders, camera) -> list[dict]:
         row = {**r, "status": st, "error": err, "objcam_message": first_message if st != "ok" else ""}
         if st == "ok":
             row.update(target_row(root / "objcam", root, r["target"]))
+            row.update(a_cached=cached.get("transport", False), solve_cached=cached.get("solve", False))
         out.append(row)
     return out
 

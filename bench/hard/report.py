@@ -116,7 +116,8 @@ def case_table(rows: list[dict]) -> list[str]:
             f"| {b['row_mean']['ssim']:.3f} | {r['tonemapped_rmse']:.3f} "
             f"| {r['skill']['tonemapped_rmse_over_row_mean']:.2f} | {r['relative_rmse']:.2f} "
             f"| {' / '.join(_f(x, '.2f') for x in r['band_energy'])} | {_f(r['brightest_angle_deg'], '.1f')} "
-            f"| {min(r['source_contrast'], 1e6):.3g} | {r['a_seconds']:.1f} | {_f(r['solve_seconds'], '.2f')} |")
+            f"| {min(r['source_contrast'], 1e6):.3g} | {r['a_seconds']:.1f}{'*' if r.get('a_cached') else ''} "
+            f"| {_f(r['solve_seconds'], '.2f')}{'*' if r.get('solve_cached') else ''} |")
     return lines
 
 
@@ -139,6 +140,7 @@ def markdown(rows: list[dict], header: list[str], noises) -> str:
              "(degrees). Noise (all): capture.toml's noise_sigma, hypot(the added noise, the render's own "
              "Monte Carlo noise), both relative to the median pixel. Contrast: the truth's brightest source's peak "
              "over the next one's. A (s): the transport "
-             "stage's wall time, one A per geometry (shared by its targets).", "",
+             "stage's wall time, one A per geometry (shared by its targets); * marks a time read from a stage "
+             "objcam took from its cache (an earlier run's).", "",
              *case_table(rows)]
     return "\n".join(lines) + "\n"
