@@ -99,6 +99,14 @@ def regenerate(args) -> int:
     """The block again from committed rows (``--from-rows``), without rendering or solving."""
     d = json.loads(args.from_rows.read_text())
     rows = d["rows"]
+    if args.rescore:
+        for r in rows:
+            if r["status"] == "ok":
+                root = args.out / "captures" / f"{r['geometry']}-{d['size']}px-{d['spp']}spp"
+                keep = {k: r[k] for k in ("a_seconds", "a_summary", "solve_seconds") if k in r}
+                r.update(target_row(root / "objcam", root, r["target"]), **keep)
+        if args.write:
+            args.from_rows.write_text(json.dumps(d, indent=1, default=float))
     for r in rows:  # rows of the first runs held objcam's message, naming a path, as their error
         if r["status"] == "refused":
             r["error"] = REFUSED
@@ -124,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true", help="write the block and the raw rows")
     ap.add_argument("--from-rows", type=Path, default=None,
                     help="regenerate the block from a rows JSON this script wrote (bench/hard_rows.json); no run")
+    ap.add_argument("--rescore", action="store_true",
+                    help="with --from-rows: recompute every solved row's scores from the artifacts under --out "
+                         "(after a change to bench/hard/score.py; statuses and times stay the run's)")
     args = ap.parse_args(argv)
     if args.from_rows:
         return regenerate(args)

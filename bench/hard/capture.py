@@ -25,6 +25,7 @@ from bench.hard.scene import look_at_camera, render
 
 DISTANCE = 0.4  # metres from the camera to the point it looks at
 AZIMUTH = -90.0  # the camera stands on the -y side
+RENDER_VERSION = "v2"  # part of the render cache's key: bump when bench/hard/scene.py changes what it renders
 
 
 def log(msg: str) -> None:
@@ -39,7 +40,7 @@ def camera_for(geo: Geometry, size: int) -> dict:
 def cached_render(case: Case, mesh: Path, camera: dict, cache: Path, spp: int, max_depth: int) -> dict:
     """{image (h, w, 3), mc (relative render noise), envmap (H, 2H, 3), rotation, seconds}; from ``cache`` when
     rendered before with the same parameters."""
-    key = f"{case.name}-{case.geometry.key}-{camera['width']}px-{spp}spp-d{max_depth}"
+    key = f"{case.name}-{case.geometry.key}-{camera['width']}px-{spp}spp-d{max_depth}-{RENDER_VERSION}"
     path = cache / f"{key}.npz"
     env, rot = make_envmap(case.light, case.rotation_deg)
     if path.is_file():

@@ -14,6 +14,31 @@ def _f(v, fmt=".3f") -> str:
     return "" if v is None else format(v, fmt)
 
 
+def _ratio(v) -> str:
+    """A ratio over a baseline: the baseline's error can be ~0 (a room whose tonemapped truth is its row means)."""
+    return "" if v is None else (f"{v:.2f}" if v < 100 else f"{v:.1g}")
+
+
+def factor_table(rows: list[dict], noises) -> list[str]:
+    """Median SSIM (and how many solved) per level of each geometry factor, per noise level: which factor hurts."""
+    lines = ["| factor | level | " + " | ".join(f"SSIM median at {100 * n:g}% (solved)" for n in noises) + " |",
+             "|---|---|" + "---:|" * len(noises)]
+    for factor, key in (("object", "object"), ("camera elevation", "elevation_deg"), ("albedo", "albedo")):
+        for level in sorted({r[key] for r in rows}, key=str):
+            cells = []
+            for n in noises:
+                s = [r["ssim"] for r in _solved(rows, n) if r[key] == level]
+                tot = sum(r[key] == level and r["noise"] == n for r in rows)
+                cells.append(f"{np.median(s):.3f} ({len(s)}/{tot})" if s else f"- (0/{tot})")
+            lines.append(f"| {factor} | {level:g} |" if isinstance(level, float) else f"| {factor} | {level} |")
+            lines[-1] += " " + " | ".join(cells) + " |"
+    return lines
+
+
+def _inf(v) -> float:
+    return float("inf") if v is None else float(v)  # JSON's null for an infinite ratio
+
+
 def _solved(rows, noise=None):
     return [r for r in rows if r["status"] == "ok" and (noise is None or r["noise"] == noise)]
 
@@ -93,7 +118,7 @@ def summary_table(rows: list[dict], noises) -> list[str]:
                 + f" {np.median([r['ssim_masked'] for r in s]):.3f} "
                 f"| {np.median([r['baselines']['row_mean']['ssim'] for r in s]):.3f} "
                 f"| {np.median([r['skill']['ssim_over_row_mean'] for r in s]):+.3f} "
-                f"| {np.median([r['skill']['tonemapped_rmse_over_row_mean'] for r in s]):.2f} "
+                f"| {_ratio(np.median([_inf(r['skill']['tonemapped_rmse_over_row_mean']) for r in s]))} "
                 f"| {sum(r['beats_row_mean']['ssim'] for r in s)}, "
                 f"{sum(r['beats_row_mean']['tonemapped_rmse'] for r in s)} of {len(s)} |")
     return lines
@@ -101,21 +126,23 @@ def summary_table(rows: list[dict], noises) -> list[str]:
 
 def case_table(rows: list[dict]) -> list[str]:
     bands = " / ".join(f"{lo:g}-{hi:g}" for lo, hi in BANDS)
-    lines = ["| target | object, camera el., albedo | noise (all) | status | SSIM | masked | const. SSIM | row-mean SSIM | "
-             "tm RMSE | / row-mean | rel. RMSE | band energy " + bands + " | brightest (deg) | contrast | A (s) | "
-             "solve (s) |", "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    lines = ["| target | object, camera el., albedo | noise (all) | status | SSIM | masked | const. SSIM | "
+             "row-mean SSIM | tm RMSE | / row-mean | rel. RMSE | band energy " + bands + " | below horizon | "
+             "brightest (deg) | contrast | A (s) | solve (s) |",
+             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|"]
     for r in rows:
         geo = f"{r['object']}, {r['elevation_deg']:g}, {r['albedo']} | {100 * r['noise_sigma']:.2g}%"
         if r["status"] != "ok":
             why = f" ({r['negative_pixels']} px < 0, min {r['min']:.2g})" if r["negative_pixels"] else ""
-            lines.append(f"| {r['target']} | {geo} | {r['status']}{why} |" + " |" * 12)
+            lines.append(f"| {r['target']} | {geo} | {r['status']}{why} |" + " |" * 13)
             continue
         b = r["baselines"]
         lines.append(
             f"| {r['target']} | {geo} | ok | {r['ssim']:.3f} | {r['ssim_masked']:.3f} | {b['constant']['ssim']:.3f} "
             f"| {b['row_mean']['ssim']:.3f} | {r['tonemapped_rmse']:.3f} "
-            f"| {r['skill']['tonemapped_rmse_over_row_mean']:.2f} | {r['relative_rmse']:.2f} "
-            f"| {' / '.join(_f(x, '.2f') for x in r['band_energy'])} | {_f(r['brightest_angle_deg'], '.1f')} "
+            f"| {_ratio(r['skill']['tonemapped_rmse_over_row_mean'])} | {r['relative_rmse']:.2f} "
+            f"| {' / '.join(_f(x, '.2f') for x in r['band_energy'])} | {_f(r.get('below_horizon_energy'), '.2f')} "
+            f"| {_f(r['brightest_angle_deg'], '.1f')} "
             f"| {min(r['source_contrast'], 1e6):.3g} | {r['a_seconds']:.1f}{'*' if r.get('a_cached') else ''} "
             f"| {_f(r['solve_seconds'], '.2f')}{'*' if r.get('solve_cached') else ''} |")
     return lines
@@ -132,15 +159,18 @@ def markdown(rows: list[dict], header: list[str], noises) -> str:
              "elevation's brightness and nothing about azimuth; skill = SSIM minus the row-mean map's; tm RMSE / "
              "row-mean < 1 is better than the oracle. IQR: 25th-75th percentile.", "",
              *summary_table(rows, noises), "",
+             "By geometry factor (each factor's levels meet every lighting family, bench/hard/design.py):", "",
+             *factor_table(rows, noises), "",
              f"Beat the row-mean oracle in SSIM ({len(beat_s)} of {len(s)} solved): "
              + (", ".join(beat_s) or "none") + ".", "",
              f"Beat it in tonemapped RMSE ({len(beat_t)} of {len(s)}): " + (", ".join(beat_t) or "none") + ".", "",
              "### Every target", "",
              "Band energy: estimate / truth solid-angle luminance energy per elevation band above the horizon "
-             "(degrees). Noise (all): capture.toml's noise_sigma, hypot(the added noise, the render's own "
-             "Monte Carlo noise), both relative to the median pixel. Contrast: the truth's brightest source's peak "
-             "over the next one's. A (s): the transport "
-             "stage's wall time, one A per geometry (shared by its targets); * marks a time read from a stage "
+             "(degrees); below horizon: the estimate's energy in the rows below the horizon over the truth's above "
+             "it (light put where the plane hides the sky). Noise (all): capture.toml's noise_sigma, hypot(the added "
+             "noise, the render's own Monte Carlo noise), both relative to the median pixel. Contrast: the truth's "
+             "brightest source's peak over the next one's. A (s): the transport stage's wall time, one A per "
+             "geometry (shared by its targets); * marks a time read from a stage "
              "objcam took from its cache (an earlier run's).", "",
              *case_table(rows)]
     return "\n".join(lines) + "\n"

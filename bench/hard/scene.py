@@ -10,7 +10,8 @@ transport or envmap module, so the targets cannot share the solver's assumptions
   atan2(d.x, -d.z) = atan2(-sin phi, cos phi) = -phi: Mitsuba's u runs against phi, so the bitmap handed to it is
   the contract's with its columns reversed (a proper rotation needs no mirror). tests/test_bench_hard.py checks
   it: a lamp's shadow, found in the image through the contract's camera, points away from the lamp.
-- Surfaces: two-sided diffuse; the support a 20 m square at z = 0 (the contract's default plane).
+- Surfaces: two-sided diffuse, flat-shaded (face normals); the support a 20 m square at z = 0 (the contract's
+  default plane).
 """
 
 from __future__ import annotations
@@ -87,7 +88,9 @@ def scene_dict(mesh: Path, camera: dict, envmap: np.ndarray, albedo_object: floa
                             "rfilter": {"type": "box"}},
                    "sampler": {"type": "multijitter", "sample_count": int(spp), "seed": int(seed)}},
         "light": {"type": "envmap", "bitmap": bitmap, "to_world": mi.ScalarTransform4f(envmap_to_world().tolist())},
-        "object": {"type": "ply", "filename": str(mesh), "bsdf": _diffuse(albedo_object)},
+        # face normals: the object is the mesh as given (Mitsuba would otherwise interpolate vertex normals, which
+        # turns a box's corners into diagonals and shades its faces like a rounded object)
+        "object": {"type": "ply", "filename": str(mesh), "face_normals": True, "bsdf": _diffuse(albedo_object)},
         "support": {"type": "rectangle", "to_world": plane, "bsdf": _diffuse(albedo_support)},
     }
 

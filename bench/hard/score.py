@@ -35,6 +35,16 @@ def band_energy_ratios(est: np.ndarray, truth: np.ndarray) -> list[float | None]
     return out
 
 
+def below_horizon_energy(est: np.ndarray, truth: np.ndarray) -> float | None:
+    """The estimate's solid-angle luminance energy in the rows wholly or mostly below the horizon (centre below
+    it) over the truth's energy above: light the solve put where the plane hides the sky (issue 22, item 1).
+    est, truth: (H, 2H, 3)."""
+    h = est.shape[0]
+    w = _solid_angles(h)
+    up = float(((truth @ LUMA) * w)[: h // 2].sum())
+    return float(((est @ LUMA) * w)[h // 2:].sum()) / up if up > 0 else None
+
+
 def source_contrast(truth: np.ndarray) -> float:
     """Peak luminance of the truth's brightest source over that of the next one: the brightest texel's region
     (texels >= half its luminance, 8-connected, wrapping in azimuth) grown by :data:`EXCLUDE_TEXELS` is set aside
@@ -74,6 +84,7 @@ def target_row(work: Path, capture: Path, target: str) -> dict:
                                  "relative_rmse_solid_angle", "brightest_angle_deg")},
         "baselines": m["baselines"], "skill": m["skill"], "beats_row_mean": m["beats_row_mean"],
         "band_energy": band_energy_ratios(est, truth),
+        "below_horizon_energy": below_horizon_energy(est, truth),
         "source_contrast": source_contrast(truth),
         "a_seconds": trec["wall_seconds"], "a_summary": trec.get("summary", ""),
         "solve_seconds": sm.get("solve_seconds"),
