@@ -47,7 +47,7 @@ test: $(STAMP)
 #   geometry  plane, known-shape registration, reconstruction, texture (issue 4; ~20 min)
 #   e2e       objcam run from raw DNGs against its known-geometry twin (issues 3, 4; ~1 h the first time)
 #   hard      the hard-case suite: lighting, objects, cameras and noise the core bench never saw, rendered by its
-#             own Mitsuba scene (issue 22; ~30 min the first time, ARGS=--quick ~1 min)
+#             own Mitsuba scene (issue 22; ~17 min the first time, ARGS=--quick ~1 min)
 BENCH ?= core analysis joint probe geometry e2e hard
 bench: $(addprefix bench-,$(BENCH))
 bench-core: $(STAMP)
