@@ -64,7 +64,7 @@ def baseline_metrics(truth: np.ndarray, mask: np.ndarray) -> dict[str, dict[str,
 def skill(estimate: dict, baselines: dict[str, dict]) -> dict[str, float]:
     """The estimate's skill over each baseline, from metric dicts (the estimate's, :func:`baseline_metrics`'):
     ``ssim_over_<b>`` = SSIM - the baseline's (0: no better), ``ssim_masked_over_<b>`` likewise for the masked
-    SSIM, ``tonemapped_rmse_over_<b>`` = tonemapped RMSE / the baseline's (1: no better; inf if the baseline's is 0).
+    SSIM, ``tonemapped_rmse_over_<b>`` = tonemapped RMSE / the baseline's (1: no better; inf where the baseline's is 0).
     """
     out = {}
     for b, bm in baselines.items():
@@ -72,7 +72,9 @@ def skill(estimate: dict, baselines: dict[str, dict]) -> dict[str, float]:
         if "ssim_masked" in estimate:
             out[f"ssim_masked_over_{b}"] = float(estimate["ssim_masked"] - bm["ssim_masked"])
         den = bm["tonemapped_rmse"]
-        out[f"tonemapped_rmse_over_{b}"] = float(estimate["tonemapped_rmse"] / den) if den > 0 else float("inf")
+        # tonemapped values lie in [0, 1]: below 1e-12 the baseline is exact (a dark room's row means, say) and
+        # the ratio is infinite, not 1e15 from rounding
+        out[f"tonemapped_rmse_over_{b}"] = float(estimate["tonemapped_rmse"] / den) if den > 1e-12 else float("inf")
     return out
 
 
