@@ -11,7 +11,7 @@ DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true --tar
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-fuzz status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -46,8 +46,10 @@ test: $(STAMP)
 #   probe     chrome-ball unwrap against the true envmap (issue 5; ~5 min)
 #   geometry  plane, known-shape registration, reconstruction, texture (issue 4; ~20 min)
 #   e2e       objcam run from raw DNGs against its known-geometry twin (issues 3, 4; ~1 h the first time)
-#   fuzz      2,000 generated hostile captures through the CLI: tracebacks, hangs, writes outside (issue 24; ~10 min)
-BENCH ?= core analysis joint probe geometry e2e fuzz
+#   hard      the hard-case suite: lighting, objects, cameras and noise the core bench never saw, rendered by its
+#             own Mitsuba scene (issue 22; ~17 min the first time, ARGS=--quick ~1 min)
+#   fuzz      2,000 generated hostile captures through the CLI: tracebacks, hangs, writes outside (issue 24; ~3 min)
+BENCH ?= core analysis joint probe geometry e2e hard fuzz
 bench: $(addprefix bench-,$(BENCH))
 bench-core: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
@@ -61,6 +63,8 @@ bench-geometry: $(STAMP)
 	$(BIN)/python -m bench.geometry_bench --write $(ARGS)
 bench-e2e: $(STAMP)
 	$(BIN)/python -m bench.e2e_bench --write $(ARGS)
+bench-hard: $(STAMP)
+	$(BIN)/python -m bench.hard --write $(ARGS)
 bench-fuzz: $(STAMP)
 	$(BIN)/python -m bench.fuzz_bench --write $(ARGS)
 

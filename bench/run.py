@@ -297,13 +297,22 @@ def render_markdown(a_rows, rows, hdris, target_spp, ref, args) -> str:
     lines += ["", "### Solve: time and envmap error per HDRI", "",
               "SSIM and RMSE of tonemapped maps (truth's 99th percentile, clip, gamma 1/2.2); relative RMSE = "
               "RMSE / mean(truth) over solved texels; angle between brightest-source directions.", "",
-              "| A | solve | HDRI | solve (s) | KKT | SSIM | tonemapped RMSE | relative RMSE | brightest angle |",
-              "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+              "Beside each score, what the truth's row-mean map (an oracle knowing every elevation's brightness and "
+              "nothing about azimuth; objcam/baselines.py) scores on the same mask.", "",
+              "| A | solve | HDRI | solve (s) | KKT | SSIM | row-mean SSIM | tonemapped RMSE | row-mean tm RMSE | "
+              "relative RMSE | brightest angle |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         ang = r.get("brightest_angle_deg")
+        rm = (r.get("baselines") or {}).get("row_mean") or {}
+        rm_s, rm_t = rm.get("ssim"), rm.get("tonemapped_rmse")
         lines.append(f"| {r['setting']} | {r['method']} | {r['hdri']} | {r['solve_s']:.3f} | {r['kkt']:.1e} | "
-                     f"{r['ssim']:.3f} | {r['tonemapped_rmse']:.3f} | {r['relative_rmse']:.3f} | "
+                     f"{r['ssim']:.3f} | {'' if rm_s is None else f'{rm_s:.3f}'} | {r['tonemapped_rmse']:.3f} | "
+                     f"{'' if rm_t is None else f'{rm_t:.3f}'} | {r['relative_rmse']:.3f} | "
                      f"{'' if ang is None else f'{ang:.1f}'} |")
+    beat = [r for r in rows if (r.get("beats_row_mean") or {}).get("ssim")]
+    if any("beats_row_mean" in r for r in rows):
+        lines += ["", f"Rows that beat the row-mean oracle in SSIM: {len(beat)} of {len(rows)}."]
     return "\n".join(lines) + "\n"
 
 

@@ -12,7 +12,8 @@ texels the solve kept (the only ones compared).
   or at radius H on grids with fewer than 5 rows, C1 = (0.01)^2, C2 = (0.03)^2 for data range 1, computed per
   channel and averaged). The SSIM map is computed on the whole grid with spherical padding (columns wrap in
   azimuth; rows continue across a pole into the row itself shifted by half a turn) and averaged over kept
-  texels.
+  texels. ``ssim_masked`` (:func:`masked_ssim`) instead ignores the texels outside the mask (normalised
+  convolution), so the border between solved and unsolved texels earns no credit; reported beside ``ssim``.
 - Peak direction: the brightest kept texel of the luminance map (Rec. 709 weights), refined to the mean
   direction of the 4-connected region (wrapping in azimuth) of kept texels at >= 50 % of the peak luminance
   containing it, each texel weighted by luminance x solid angle. ``brightest_angle_deg`` is the angle between the
@@ -171,6 +172,36 @@ def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, data_rang
     return float(s.mean() if mask is None else s[np.asarray(mask, dtype=bool)].mean())
 
 
+def masked_ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray, data_range: float = 1.0,
+                sigma: float = SSIM_SIGMA, radius: int = SSIM_RADIUS) -> float:
+    """SSIM that ignores texels outside ``mask`` instead of zeroing them: mean over kept texels of the SSIM whose
+    local means, variances and covariance are normalised convolutions (Gaussian window restricted to kept texels,
+    renormalised), so the edge between kept texels and the unsolved region gives no free structure.
+
+    a, b: (H, 2H[, C]) lat-long maps (tonemapped); mask: (H, 2H) bool. Equal to :func:`ssim` when every texel is
+    kept. Same window, padding and constants as :func:`ssim_map`.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    m = np.asarray(mask, dtype=bool)
+    w = m[..., None].astype(np.float64)
+    taps = _gaussian_taps(sigma, min(radius, a.shape[0]))
+    wsum = np.maximum(_blur(w, taps), 1e-12)
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        return _blur(w * x, taps) / wsum
+
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mu_a, mu_b = mean(a), mean(b)
+    saa = mean(a * a) - mu_a**2
+    sbb = mean(b * b) - mu_b**2
+    sab = mean(a * b) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))).mean(axis=-1)
+    return float(s[m].mean())
+
+
 def _wrapped_component(region: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
     """The 4-connected component of ``region`` (H, W) containing ``seed``, with columns wrapping."""
     labels, n = ndimage.label(region)
@@ -239,8 +270,8 @@ def envmap_metrics(est: np.ndarray, truth: np.ndarray, kept_mask: np.ndarray | N
     scale_invariant: False, True (one global :func:`best_scale`) or "channel" (:func:`best_scale_channels`, the
     ambiguity of a joint albedo/envmap solve).
     Keys: ``relative_rmse`` (plain per texel, the headline), ``relative_rmse_solid_angle``, ``tonemapped_rmse``,
-    ``ssim`` (tonemapped, mean over kept texels), ``brightest_angle_deg``, ``scale`` (the factor applied to est:
-    :func:`best_scale` when ``scale_invariant``, else 1.0; with "channel" the mean of the per-channel factors,
+    ``ssim`` (tonemapped, mean over kept texels), ``ssim_masked`` (:func:`masked_ssim`), ``brightest_angle_deg``,
+    ``scale`` (the factor applied to est: :func:`best_scale` when ``scale_invariant``, else 1.0; with "channel" the mean of the per-channel factors,
     listed in ``scale_channels``) and ``best_scale`` (always reported).
     """
     est, truth, m = _check(est, truth, kept_mask)
@@ -262,6 +293,7 @@ def envmap_metrics(est: np.ndarray, truth: np.ndarray, kept_mask: np.ndarray | N
         "relative_rmse_solid_angle": relative_rmse(e, truth, m, solid_angle=True),
         "tonemapped_rmse": float(np.sqrt(np.mean((te[m] - tt[m]) ** 2))),
         "ssim": ssim(te, tt, m),
+        "ssim_masked": masked_ssim(te, tt, m),
         "brightest_angle_deg": brightest_angle_deg(e, truth, m),
         "scale": float(s),
         "best_scale": float(s_best),

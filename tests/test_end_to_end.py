@@ -54,6 +54,28 @@ def test_recovers_the_sun_and_the_irradiance(capture):
     assert np.all(np.abs(ratio - 1.0) < 0.05), ratio  # measured within 0.6%
 
 
+def test_evaluate_reports_the_baselines_beside_each_score(capture):
+    import cv2
+
+    from objcam.baselines import baseline_metrics
+    from objcam.metrics import envmap_metrics
+
+    metrics = json.loads((capture / "objcam" / "evaluate" / "metrics.json").read_text())["t0"]
+    d = capture / "objcam" / "solve" / "t0"
+    est = read_exr(d / "envmap.exr")[..., :3].astype(float)
+    mask = cv2.imread(str(d / "envmap_mask.png"), cv2.IMREAD_UNCHANGED) > 127
+    truth = resample_to_height(read_exr(capture / "truth" / "envmap.exr")[..., :3].astype(float), 32)
+    # the existing keys keep their values; the baselines are the truth's constant and row-mean maps on that mask
+    plain = envmap_metrics(est, truth, mask)
+    for k in ("ssim", "tonemapped_rmse", "relative_rmse"):
+        assert metrics[k] == pytest.approx(plain[k], rel=1e-9)
+    base = baseline_metrics(truth, mask)
+    for b in ("constant", "row_mean"):
+        assert metrics["baselines"][b]["ssim"] == pytest.approx(base[b]["ssim"], rel=1e-9)
+        assert metrics["skill"][f"ssim_over_{b}"] == pytest.approx(metrics["ssim"] - base[b]["ssim"], abs=1e-9)
+    assert metrics["beats_row_mean"]["ssim"] == (metrics["ssim"] > base["row_mean"]["ssim"])
+
+
 def test_solve_is_exact_and_fits_the_image(capture):
     info = json.loads((capture / "objcam" / "solve" / "t0" / "solve.json").read_text())
     assert info["kkt_residual_max"] < 1e-8

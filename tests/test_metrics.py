@@ -92,7 +92,8 @@ def test_best_scale_and_scale_invariant_metrics():
 def test_identical_maps():
     truth = sky(16) + blob(16, 0.5, 1.0)
     m = envmap_metrics(truth, truth, upper_mask(16))
-    assert set(m) == {"relative_rmse", "relative_rmse_solid_angle", "tonemapped_rmse", "ssim", "brightest_angle_deg",
+    assert set(m) == {"relative_rmse", "relative_rmse_solid_angle", "tonemapped_rmse", "ssim", "ssim_masked",
+                      "brightest_angle_deg",
                       "scale", "best_scale"}
     assert all(type(v) is float for v in m.values())
     assert m["relative_rmse"] == 0.0 and m["tonemapped_rmse"] == 0.0

@@ -92,6 +92,7 @@ def test_page_is_self_contained_and_complete(capture):
     metrics = json.loads((work / "evaluate" / "metrics.json").read_text())["t0"]
     for k in ("ssim", "relative_rmse", "tonemapped_rmse", "brightest_angle_deg"):
         assert fmt(metrics[k]) in text, k
+    assert f"row-mean map (no azimuth) scores SSIM {fmt(metrics['baselines']['row_mean']['ssim'])}" in text
     solve = json.loads((work / "solve" / "t0" / "solve.json").read_text())
     assert fmt(solve["kkt_residual_max"]) in text
     groups = json.loads((work / "analysis" / "analysis.json").read_text())["groups"]

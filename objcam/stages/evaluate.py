@@ -2,7 +2,7 @@
 
 The true envmap is area-averaged (solid-angle exact) to the solve resolution and compared over the texels the
 solve kept: relative RMSE, RMSE and SSIM of tonemapped maps, and the angle between brightest sources (see
-objcam/metrics.py). A capture without ``truth/`` gets an explicit "no truth" record, not a silent pass.
+objcam/metrics.py), each beside what the constant and the row-mean map of the truth score (objcam/baselines.py). A capture without ``truth/`` gets an explicit "no truth" record, not a silent pass.
 
 Unknown albedo (the solve says so in solve.json): the envmap is known only up to one scale per colour channel,
 so it is compared after the best-fit scale per channel (``scale_invariant`` None, the default); and the albedo
@@ -37,8 +37,8 @@ from objcam.schemas.artifacts import SceneArtifact
 NAME = "evaluate"
 DEPS = ("scene", "transport", "solve")
 OPTIONAL_DEPS = ("probe",)  # chrome-ball ground truth: used where the capture has no truth/ envmap
-VERSION = "2"
-CODE_DEPS = ("objcam.metrics",)
+VERSION = "3"
+CODE_DEPS = ("objcam.metrics", "objcam.baselines")
 
 
 class Params(BaseModel):
@@ -202,9 +202,16 @@ def _probe_truth(inputs: StageInputs, target, height: int):
     return probe_truth(inputs.upstream["probe"], target.illumination or target.name, height)
 
 
+def _finite_or_null(d: dict) -> dict:
+    """``d`` with every non-finite float (nested dicts too) replaced by None."""
+    return {k: _finite_or_null(v) if isinstance(v, dict) else
+            (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+
+
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
     import cv2
 
+    from objcam.baselines import with_baselines
     from objcam.metrics import envmap_metrics
 
     scene = SceneArtifact.load(inputs.upstream["scene"])
@@ -240,9 +247,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             truth = resample_to_height(truth_full, est.shape[0])
         if not mask.any():
             continue
-        m = envmap_metrics(est, truth, mask, scale_invariant=inv)
+        # the constant and row-mean maps scored beside the estimate, and its skill over them (issue 28)
+        m = with_baselines(envmap_metrics(est, truth, mask, scale_invariant=inv), truth, mask)
         # strict JSON: an undefined metric (e.g. no bright source in an all-zero estimate) is null, not NaN
-        m = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in m.items()}
+        m = _finite_or_null(m)
         m["truth_source"] = source
         m["truth_file"] = (str(tpath.relative_to(inputs.capture)) if tpath is not None
                            else f"objcam/probe/ ({target.illumination or target.name})")
@@ -264,4 +272,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     mean = {k: float(np.mean([r[k] for r in results.values() if r.get(k) is not None])) for k in keys
             if any(r.get(k) is not None for r in results.values())}
     summary = ", ".join(f"{k} {v:.3f}" for k, v in mean.items()) + f" (mean of {len(results)} target(s))"
+    rm = [r["baselines"]["row_mean"]["ssim"] for r in results.values() if "baselines" in r]
+    if rm:
+        beat = sum(r["beats_row_mean"]["ssim"] for r in results.values() if "baselines" in r)
+        summary += f"; the truth's row-mean map scores SSIM {np.mean(rm):.3f} (beaten on {beat}/{len(rm)})"
     return StageOutputs(metrics={"targets": results, "mean": mean}, summary=summary)

@@ -147,6 +147,11 @@ def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | Non
         parts.append(f"<p>SSIM <strong>{H.esc(H.fmt(m.get('ssim')))}</strong>, relative RMSE "
                      f"<strong>{H.esc(H.fmt(m.get('relative_rmse')))}</strong>, brightest-source angle "
                      f"{H.esc(H.fmt(m.get('brightest_angle_deg')))}&nbsp;deg.</p>")
+        rm = (m.get("baselines") or {}).get("row_mean")
+        if isinstance(rm, dict):  # issue 28: what a map knowing only each elevation's brightness scores
+            parts.append(f"<p>The truth's row-mean map (no azimuth) scores SSIM {H.esc(H.fmt(rm.get('ssim')))} and "
+                         f"relative RMSE {H.esc(H.fmt(rm.get('relative_rmse')))}; the constant map SSIM "
+                         f"{H.esc(H.fmt((m['baselines'].get('constant') or {}).get('ssim')))}.</p>")
     # recovered envmap next to the truth
     parts.append("<h3>Recovered environment map</h3>")
     overview = png(ed / "overview.png")

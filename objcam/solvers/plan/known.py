@@ -53,8 +53,7 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache)
     solve_s = time.perf_counter() - t0
-    # (channels_in_A records 0 for the edge path, as solve.json always has)
-    info = {"channels_in_A": 0 if edges else int(tr.A.shape[0]), "solve_seconds": round(solve_s, 4),
+    info = {"channels_in_A": int(tr.A.shape[0]), "solve_seconds": round(solve_s, 4),
             "iterations": int(iters), "kkt_residual_max": float(kkt.max()), "objective": obj.tolist(),
             "ls_relative": ls, "ls_source": ls_source}
     return known_solution(tr, grid, d, X, params, info, edge_info, auto_info)
