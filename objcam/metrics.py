@@ -141,6 +141,20 @@ def _blur(img: np.ndarray, taps: np.ndarray) -> np.ndarray:
     return sum(t * rows[:, k : k + w] for k, t in enumerate(taps))
 
 
+def _ssim_from_moments(a: np.ndarray, b: np.ndarray, mean, data_range: float) -> np.ndarray:
+    """Per-pixel SSIM (H, W), averaged over channels, of (H, W, C) images whose local means ``mean(x)`` gives
+    (the window, padding and mask are the caller's): Wang et al. 2004, C1 = (0.01 L)^2, C2 = (0.03 L)^2."""
+    c1 = (0.01 * data_range) ** 2
+    c2 = (0.03 * data_range) ** 2
+    mu_a, mu_b = mean(a), mean(b)
+    saa = mean(a * a) - mu_a**2
+    sbb = mean(b * b) - mu_b**2
+    sab = mean(a * b) - mu_a * mu_b
+    num = (2 * mu_a * mu_b + c1) * (2 * sab + c2)
+    den = (mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2)
+    return (num / den).mean(axis=-1)
+
+
 def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 1.0, sigma: float = SSIM_SIGMA,
              radius: int = SSIM_RADIUS) -> np.ndarray:
     """Per-texel SSIM (H, W) of two lat-long images (H, W[, C]), averaged over channels.
@@ -155,15 +169,7 @@ def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 1.0, sigma: float
     if a.ndim == 2:
         a, b = a[..., None], b[..., None]
     taps = _gaussian_taps(sigma, min(radius, a.shape[0]))
-    c1 = (0.01 * data_range) ** 2
-    c2 = (0.03 * data_range) ** 2
-    mu_a, mu_b = _blur(a, taps), _blur(b, taps)
-    saa = _blur(a * a, taps) - mu_a**2
-    sbb = _blur(b * b, taps) - mu_b**2
-    sab = _blur(a * b, taps) - mu_a * mu_b
-    num = (2 * mu_a * mu_b + c1) * (2 * sab + c2)
-    den = (mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2)
-    return (num / den).mean(axis=-1)
+    return _ssim_from_moments(a, b, lambda x: _blur(x, taps), data_range)
 
 
 def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, data_range: float = 1.0) -> float:
@@ -193,13 +199,7 @@ def masked_ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray, data_range: floa
     def mean(x: np.ndarray) -> np.ndarray:
         return _blur(w * x, taps) / wsum
 
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    mu_a, mu_b = mean(a), mean(b)
-    saa = mean(a * a) - mu_a**2
-    sbb = mean(b * b) - mu_b**2
-    sab = mean(a * b) - mu_a * mu_b
-    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))).mean(axis=-1)
-    return float(s[m].mean())
+    return float(_ssim_from_moments(a, b, mean, data_range)[m].mean())
 
 
 def _wrapped_component(region: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
@@ -315,12 +315,7 @@ def image_ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, dat
         return ndimage.gaussian_filter(x, sigma=(SSIM_SIGMA, SSIM_SIGMA, 0), mode="mirror",
                                        truncate=SSIM_RADIUS / SSIM_SIGMA)
 
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    mu_a, mu_b = blur(a), blur(b)
-    saa = blur(a * a) - mu_a**2
-    sbb = blur(b * b) - mu_b**2
-    sab = blur(a * b) - mu_a * mu_b
-    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))).mean(axis=-1)
+    s = _ssim_from_moments(a, b, blur, data_range)
     return float(s.mean() if mask is None else s[np.asarray(mask, dtype=bool)].mean())
 
 
