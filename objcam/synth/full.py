@@ -52,6 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from objcam.camera import Camera, look_at
 from objcam.errors import InputError
 from objcam.sfm.board import BoardSpec
+from objcam.synth.views import RingElevations
 
 RGB = tuple[float, float, float]
 
@@ -79,7 +80,7 @@ class FullSynthParams(BaseModel):
     texture_px_per_m: float = Field(4000.0, gt=100, description="board texture resolution, texels per metre")
     plane_size: float = Field(20.0, gt=0, description="side of the support plane (paper), metres")
     n_views: int = Field(16, ge=3, le=512, description="views in the ring")
-    elevations_deg: list[float] = Field([30.0, 50.0], min_length=1, description="ring elevations, degrees")
+    elevations_deg: RingElevations = Field([30.0, 50.0], min_length=1, description="ring elevations, degrees")
     view_distance: float = Field(0.6, gt=0, description="view camera distance from the object, metres")
     width: int = Field(640, ge=32, le=8192, description="decoded image width (sensor: twice), pixels")
     height: int = Field(480, ge=32, le=8192, description="decoded image height (sensor: twice), pixels")
@@ -113,13 +114,6 @@ class FullSynthParams(BaseModel):
     max_size: int | None = Field(None, description="[views] max_size written to capture.toml (default: the "
                                  "larger image side, no downsampling)")
     seed: int = Field(0, ge=0)
-
-    @field_validator("elevations_deg")
-    @classmethod
-    def _elev(cls, v: list[float]) -> list[float]:
-        if any(not (0 < e < 90) for e in v):
-            raise ValueError("elevations must lie in (0, 90) degrees")
-        return v
 
     @field_validator("rotations_deg")
     @classmethod

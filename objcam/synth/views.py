@@ -14,15 +14,25 @@ import contextlib
 import math
 import tempfile
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Annotated, Iterator, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from objcam.camera import Camera, look_at
 from objcam.errors import InputError
 from objcam.sfm.board import BoardSpec
 
+
+
+def _check_elevations(v: list[float]) -> list[float]:
+    if any(not (0 < e < 90) for e in v):
+        raise ValueError("elevations must lie in (0, 90) degrees")
+    return v
+
+
+#: ring elevations in degrees, each in (0, 90) (shared by the ring's and the full capture's params)
+RingElevations = Annotated[list[float], AfterValidator(_check_elevations)]
 
 class ViewRingParams(BaseModel):
     """The ring of views. Defaults: the bunny (8 cm) on the default A3 board under ``forest``, 24 views at 800 x 600
@@ -40,7 +50,7 @@ class ViewRingParams(BaseModel):
     texture_px_per_m: float = Field(4000.0, gt=100, description="board texture resolution, texels per metre")
     plane_size: float = Field(20.0, gt=0, description="side of the support plane, metres (paper beyond the board)")
     n_views: int = Field(24, ge=1, le=512, description="number of views, spread over the rings")
-    elevations_deg: list[float] = Field([30.0, 50.0], min_length=1, description="ring elevations, degrees")
+    elevations_deg: RingElevations = Field([30.0, 50.0], min_length=1, description="ring elevations, degrees")
     azimuth0_deg: float = Field(0.0, description="azimuth of the first view, degrees from +x towards +y")
     distance: float = Field(0.6, gt=0, description="camera distance from the look-at point, metres")
     look_at: tuple[float, float, float] | None = Field(
@@ -56,12 +66,6 @@ class ViewRingParams(BaseModel):
     bit_depth: Literal[8, 16] = Field(8, description="PNG bit depth")
     seed: int = Field(0, ge=0)
 
-    @field_validator("elevations_deg")
-    @classmethod
-    def _elev(cls, v: list[float]) -> list[float]:
-        if any(not (0 < e < 90) for e in v):
-            raise ValueError("elevations must lie in (0, 90) degrees")
-        return v
 
 
 def view_names(params: ViewRingParams) -> list[str]:
