@@ -15,6 +15,7 @@ and the raw rows into bench/hard_rows.json (``--quick`` into bench/hard_rows_qui
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -33,11 +34,14 @@ TITLE = "Hard cases (issue 22)"
 REFUSED = "the scene stage refuses negative pixels (zero-mean noise kept, never clipped)"
 
 
-def run_capture(root: Path, geo, group, renders, camera) -> list[dict]:
+def run_capture(root: Path, geo, group, renders, camera, sets: tuple[str, ...] = ()) -> list[dict]:
     """Write and run one geometry's capture; returns its target records with ``status`` and, when solved, the
-    score (bench.hard.score.target_row)."""
+    score (bench.hard.score.target_row). ``sets``: objcam ``--set`` overrides (stage.param=value), run in a work
+    folder of their own (``objcam-<hash>``) so the defaults' cache stays."""
     from objcam.errors import ObjcamError
-    from objcam.pipeline.engine import Pipeline
+    from objcam.pipeline.engine import Pipeline, parse_overrides
+
+    work = root / ("objcam" if not sets else "objcam-" + hashlib.sha1(" ".join(sets).encode()).hexdigest()[:8])
 
     records = write_capture(root, geo, group, renders, camera)
     status = {r["target"]: ("ok", "") for r in records}
@@ -46,7 +50,8 @@ def run_capture(root: Path, geo, group, renders, camera) -> list[dict]:
     for attempt in range(2):
         try:
             # issue 28: a time read from a stage that came from the cache is an earlier run's; flag it
-            cached = {rep.stage: rep.status == "cached" for rep in Pipeline(root, quiet=True).run(until="evaluate")}
+            pipe = Pipeline(root, work, overrides=parse_overrides(list(sets)), quiet=True)
+            cached = {rep.stage: rep.status == "cached" for rep in pipe.run(until="evaluate")}
             break
         except ObjcamError as e:
             msg = " ".join(str(e).split()).replace(f"{root.resolve()}/", "")
@@ -71,7 +76,7 @@ def run_capture(root: Path, geo, group, renders, camera) -> list[dict]:
         st, err = status[r["target"]]
         row = {**r, "status": st, "error": err, "objcam_message": first_message if st != "ok" else ""}
         if st == "ok":
-            row.update(target_row(root / "objcam", root, r["target"]))
+            row.update(target_row(work, root, r["target"]))
             row.update(a_cached=cached.get("transport", False), solve_cached=cached.get("solve", False))
         out.append(row)
     return out
@@ -135,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rescore", action="store_true",
                     help="with --from-rows: recompute every solved row's scores from the artifacts under --out "
                          "(after a change to bench/hard/score.py; statuses and times stay the run's)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="an objcam parameter for every case (repeatable), e.g. solve.ls_noise_factor=3: measures a "
+                         "setting across the suite (its own work folder per capture; rows to rows_<label>-<hash>.json)")
     args = ap.parse_args(argv)
     if args.from_rows:
         return regenerate(args)
@@ -163,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{' (cached)' if renders[c.name]['cached'] else ''}, render noise {100 * renders[c.name]['mc']:.2f}%")
         t0 = time.perf_counter()
         root = args.out / "captures" / f"{geo.key}-{size}px-{spp}spp"
-        got = run_capture(root, geo, group, renders, camera)
+        got = run_capture(root, geo, group, renders, camera, tuple(args.sets))
         for r in got:
             c = next(c for c in group if c.name == r["case"])
             r.update({"family": c.light.family, "lighting": c.light.name, "rotation_deg": renders[c.name]["rotation"],
@@ -181,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     data = json.dumps({"label": label, "size": size, "spp": spp, "max_depth": args.max_depth, "wall_seconds": wall,
                        "render_seconds": render_s, "made_by": made_by, "rows": rows}, indent=1, default=float)
-    (args.out / f"rows_{label}.json").write_text(data)
+    tag = "" if not args.sets else "-" + hashlib.sha1(" ".join(args.sets).encode()).hexdigest()[:8]
+    (args.out / f"rows_{label}{tag}.json").write_text(data)
     if args.write:
         write_section("hard", text, TITLE, args.results)
         args.results.with_name("hard_rows" + ("_quick" if args.quick else "") + ".json").write_text(data)
