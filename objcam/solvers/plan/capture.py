@@ -38,13 +38,14 @@ def solve_capture(scene, data: dict[str, TargetData], params: SolveParams,
                          "not method=adam", capture / "capture.toml", "set transport.supersample=1")
     if params.method == "adam":
         return solve_adam(scene, data, params)
-    pairs = [(str(data[t.name][0].folder), getattr(t, "illumination", "") or t.name, t.name) for t in scene.targets]
+    pairs = [(str(data[t.name].transport.folder), getattr(t, "illumination", "") or t.name, t.name)
+             for t in scene.targets]
     try:
         comps = components(pairs)
     except ValueError as e:
         raise StageError(str(e), capture / "capture.toml",
                          "fix the targets' illumination names in capture.toml") from None
-    tr_of_cam = {cam: data[t][0] for cam, _, t in pairs}
+    tr_of_cam = {cam: data[t].transport for cam, _, t in pairs}
     names_of = {(cam, ill): t for cam, ill, t in pairs}
     per_target: dict[str, TargetSolution] = {}
     for comp in comps:
@@ -67,7 +68,7 @@ def solve_adam(scene, data: dict[str, TargetData], params: SolveParams) -> dict[
                             stop_on_plateau=params.adam_stop_on_plateau)
     out: dict[str, TargetSolution] = {}
     for name, r in solve_adam_targets(scene, data, settings).items():
-        tr = data[name][0]
+        tr = data[name].transport
         grid = EnvGrid(tr.env_height)
         out[name] = TargetSolution(r.envmap, texel_mask(grid, tr.texel_index), r.prediction, r.info,
                                    albedo=r.albedo, albedo_mask=r.albedo_mask)

@@ -32,7 +32,7 @@ def final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: n
     elif params.ls is not None:
         ls, source = params.ls, "param"
     else:  # the known-albedo rule, the median over the problem's targets
-        got = [noise_ls(scene.target(t), data[t][1], data[t][2], params, c["tr"].downsample, linear=True)
+        got = [noise_ls(scene.target(t), data[t].pooled, data[t].pooled_ok, params, c["tr"].downsample, linear=True)
                for c in cams for t in c["targets"]]
         ls, source = float(np.median([g[0] for g in got])), f"median over the targets of {got[0][1]}"
     X, rho = res.x, [np.asarray(r, np.float64) for r in res.rho]

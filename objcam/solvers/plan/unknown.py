@@ -118,7 +118,7 @@ def camera_blocks(scene, data: dict[str, TargetData], params: SolveParams, comp,
     for cam in comp.cameras:
         tr = tr_of_cam[cam]
         tnames = [names_of[(cam, ill)] for ill in comp.illuminations]
-        use = np.logical_and.reduce([data[t][4] for t in tnames])
+        use = np.logical_and.reduce([data[t].use for t in tnames])
         mixed = mixed_pixels(tr) if params.method == "exact" and params.mixed_pixels == "exclude" else None
         n_mixed = int((use & mixed).sum()) if mixed is not None else 0
         if mixed is not None:
@@ -129,7 +129,7 @@ def camera_blocks(scene, data: dict[str, TargetData], params: SolveParams, comp,
                              "check the valid masks and saturation levels of these targets")
         rows = np.flatnonzero(use)
         A = grey_rho_free(tr, rows, comp.texel_index)
-        Y = np.stack([data[t][3][rows] for t in tnames], axis=1)  # (M, L, 3)
+        Y = np.stack([data[t].y[rows] for t in tnames], axis=1)  # (M, L, 3)
         # start known pixels at their known albedo and unknown ones mid-range
         rho0 = np.where(tr.unknown_albedo[rows, None], 0.5, np.clip(tr.albedo[rows], 1e-3, 1.0))
         # pixels of known albedo (the object's, given in capture.toml) are held at it: they pin the scale that
@@ -137,7 +137,7 @@ def camera_blocks(scene, data: dict[str, TargetData], params: SolveParams, comp,
         # absolute albedo error 19% -> 1.5%). The paper's damped steps estimate every pixel's albedo, as the
         # method does: held pixels made them diverge there (objective x10 by sweep 8, no scale step to follow)
         fixed = ~tr.unknown_albedo[rows] if params.method == "exact" else np.zeros(rows.size, bool)
-        sig = [discrepancy_sigma(scene.target(t), data[t][3][rows], params.auto_reg) for t in tnames]
+        sig = [discrepancy_sigma(scene.target(t), data[t].y[rows], params.auto_reg) for t in tnames]
         cams.append(dict(key=cam, tr=tr, rows=rows, A=A, Y=Y, rho0=rho0, fixed=fixed, targets=tnames, sigma=sig,
                          n_mixed=n_mixed))
     return cams
@@ -158,7 +158,7 @@ def joint_setup(scene, data: dict[str, TargetData], params: SolveParams, cams: l
     ls_source = "param"
     ls_fixed = params.ls
     if ls_fixed is None and params.auto_reg == "off":
-        got = [noise_ls(scene.target(t), data[t][1], data[t][2], params, c["tr"].downsample)
+        got = [noise_ls(scene.target(t), data[t].pooled, data[t].pooled_ok, params, c["tr"].downsample)
                for c in cams for t in c["targets"]]
         ls_fixed = float(np.median([g[0] for g in got]))
         ls_source = f"median over the targets of {got[0][1].split(' ')[0]} ls ({len(got)} targets)"
