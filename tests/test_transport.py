@@ -285,6 +285,33 @@ def test_auto_decides_against_the_noise(art, tmp_path, indirect):
     assert 0.0 < extra < 0.5
 
 
+def test_auto_models_indirect_light_below_the_per_pixel_noise(art, tmp_path):
+    """Issue 22: indirect light smaller than one pixel's noise is still a bias shared by every pixel; the
+    decision is by its chi-squared effect on the fit (objcam.transport.auto.indirect_effect), so it is modelled."""
+    folder, _ = art
+    probe = _run(folder, tmp_path / "probe", model="auto", auto_noise=0.5, auto_columns=6, auto_spp=8)
+    noise = 2.0 * probe["auto_relative_indirect"]  # per-pixel noise twice the indirect light's relative size
+    m = _run(folder, tmp_path / "o", model="auto", auto_noise=noise, auto_columns=6, auto_spp=8)
+    assert m["auto_relative_indirect"] < m["auto_target_noise"]  # the old per-pixel test would say "direct"
+    assert m["auto_effect_chi2"] > m["auto_threshold_chi2"] and m["auto_margin"] > 1
+    assert m["auto_choice"] == "direct+indirect" and m["correction_seconds"] >= 0
+
+
+def test_indirect_effect_scales_with_pixels_and_noise():
+    from objcam.transport.auto import AUTO_EFFECT_Z, indirect_effect
+
+    rng = np.random.default_rng(0)
+    direct = rng.uniform(0.5, 1.5, (4000, 3))
+    indirect = 0.01 * direct  # 1% everywhere
+    eff, thr = indirect_effect(direct, indirect, noise=0.02)  # below the per-pixel noise
+    want = np.sum(indirect**2) / (0.02 * np.median(direct)) ** 2
+    assert eff == pytest.approx(want) and thr == pytest.approx(AUTO_EFFECT_Z * np.sqrt(2 * direct.size))
+    assert eff > thr  # 12,000 pixel values: a 1% bias is a 0.5-sigma shift each, ~3,000 in chi-squared
+    eff_few, thr_few = indirect_effect(direct[:20], indirect[:20], noise=0.02)
+    assert eff_few < thr_few  # 60 values: the same bias hides in the noise
+    assert indirect_effect(direct, indirect, noise=0.0) == (0.0, float("inf"))
+
+
 def test_path_model_with_direct_light_only_matches_direct(art, tmp_path):
     folder, _ = art
     m = _run(folder, tmp_path / "p", model="path", path_spp=64, path_max_depth=2, downsample=2)

@@ -2,8 +2,9 @@
 
 Reads the scene artifact (scene.json, meshes, targets.json); writes one zarr group per distinct camera and
 index.json (see objcam.transport.storage). Models: ``direct`` (shadow rays, culled; fast), ``path`` (one
-path-traced render per texel; the reference), ``auto`` (direct, plus a coarse path-traced indirect correction
-when sampled columns show more indirect light than the target's noise).
+path-traced render per texel; the reference), ``auto`` (direct, plus an indirect correction when leaving the
+indirect light of sampled columns out would move the fit beyond what the target's noise explains:
+objcam.transport.auto).
 """
 
 from __future__ import annotations
@@ -55,8 +56,9 @@ class Params(BaseModel):
     auto_columns: int = Field(16, ge=1, description="auto: columns sampled to measure indirect light")
     auto_spp: int = Field(32, ge=2)
     auto_max_depth: int = Field(6)
-    auto_noise: float | None = Field(None, gt=0, description="auto: relative target noise (else targets' "
-                                                             "noise_sigma, else estimated from the image)")
+    auto_noise: float | None = Field(None, gt=0, description="auto: relative target noise per photo pixel "
+                                                             "(else targets' noise_sigma, else estimated from the "
+                                                             "image)")
     correction_scale: int = Field(4, ge=1, description="auto: indirect rendered at 1/scale pooled resolution")
     correction_spp: int = Field(32, ge=1)
     correction_texel_block: int = Field(4, ge=1, description="auto: indirect rendered per g x g texel block "
@@ -155,13 +157,13 @@ def downsample_for(camera, params: Params) -> int:
 
 
 def _target_noise(folder, targets, f: int, estimator) -> tuple[float, str]:
-    """The smallest relative noise among targets sharing a camera: their noise_sigma, else estimated from the
-    (pooled) image; 1% when neither is available."""
+    """The smallest relative noise per fitted (pooled) pixel among targets sharing a camera: their noise_sigma
+    over the pooling factor f, else estimated from the pooled image; 1% when neither is available."""
     from objcam.transport.pixels import pool_target
 
     given = [t.noise_sigma for t in targets if t.noise_sigma is not None]
-    if given:
-        return float(min(given)), "noise_sigma"
+    if given:  # noise_sigma is per photo pixel: the mean of f x f of them
+        return float(min(given)) / max(int(f), 1), "noise_sigma"
     est = []
     for t in targets:
         try:

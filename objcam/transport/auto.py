@@ -1,5 +1,13 @@
-"""``model=auto``: is direct light enough? Measure the indirect light on a sample of columns and, when it is
-above the target's noise, add a cheap path-traced indirect correction to every column.
+"""``model=auto``: is direct light enough? Measure the indirect light on a sample of columns and, when leaving
+it out would change the answer beyond what the target's noise explains, add an indirect correction to every column.
+
+The decision is by the indirect light's effect on the fit, not by per-pixel magnitudes: the indirect image I is a
+bias correlated over every pixel, while the noise is independent per pixel and averages out in the solve. Leaving
+I out of A moves the solve by ``||I||^2 / sigma^2`` in whitened units (chi-squared), split between the residual
+(the part of I no envmap explains) and the envmap (the part it absorbs: a shift of the recovered light measured
+against the solve's own uncertainty). It is compared with the chi-squared's own spread over M pixel values,
+``sqrt(2 M)``: the indirect light is modelled when its effect exceeds ``AUTO_EFFECT_Z`` times that spread
+(:func:`indirect_effect`).
 
 Indirect light of a column is measured as render(max_depth=D) - render(max_depth=2) with the same seed: both
 renders draw the same random numbers for the camera ray and the first vertex, so their difference holds only
@@ -55,22 +63,52 @@ def choose_columns(texel_index: np.ndarray, norms: np.ndarray, n: int, env_heigh
     return np.array(sorted(chosen), dtype=np.int64)
 
 
+#: the indirect light is modelled when its chi-squared effect exceeds this many standard deviations of the
+#: chi-squared of M independent pixel values (sqrt(2 M)): a shift a fit could tell from noise at 3 sigma
+AUTO_EFFECT_Z = 3.0
+
+
+def indirect_effect(direct: np.ndarray, indirect: np.ndarray, noise: float) -> tuple[float, float]:
+    """(chi-squared effect, threshold) of leaving the indirect image out of the model.
+
+    direct, indirect: (M, 3) images of the same lighting (the sampled columns' sum); noise: the target's relative
+    noise per fitted pixel (sigma over the median pixel, as ``noise_sigma``). The effect is ``||indirect||^2 /
+    sigma_abs^2`` with ``sigma_abs = noise x median(direct > 0)``; the threshold ``AUTO_EFFECT_Z sqrt(2 M)`` over
+    the M pixel values.
+    """
+    pos = direct[direct > 0]
+    if pos.size == 0 or noise <= 0:
+        return 0.0, float("inf")
+    sigma_abs = noise * float(np.median(pos))
+    effect = float(np.sum(np.asarray(indirect, np.float64) ** 2) / sigma_abs**2)
+    return effect, AUTO_EFFECT_Z * float(np.sqrt(2.0 * direct.size))
+
+
 @dataclass
 class AutoReport:
     relative_indirect: float  # ||sum_s indirect_s|| / ||sum_s direct_s|| over the sampled columns, noise-corrected
     measurement_noise: float  # relative MC noise of that measurement
     per_column_median: float  # median over the sampled columns of the same ratio
-    target_noise: float
+    target_noise: float  # relative noise per fitted pixel
     noise_source: str
     columns: int
     choice: str  # "direct" or "direct+indirect"
+    effect_chi2: float = 0.0  # leaving the indirect light out: its chi-squared effect (indirect_effect)
+    threshold_chi2: float = 0.0  # ... and the threshold it is compared with
     seconds: float = 0.0
+
+    @property
+    def margin(self) -> float:
+        """effect / threshold: > 1 models the indirect light; near 1 the choice is close."""
+        return self.effect_chi2 / self.threshold_chi2 if self.threshold_chi2 > 0 else 0.0
 
     def metrics(self) -> dict:
         return {"auto_relative_indirect": round(self.relative_indirect, 6),
                 "auto_measurement_noise": round(self.measurement_noise, 6),
                 "auto_per_column_median": round(self.per_column_median, 6),
                 "auto_target_noise": round(self.target_noise, 6), "auto_noise_source": self.noise_source,
+                "auto_effect_chi2": round(self.effect_chi2, 3), "auto_threshold_chi2": round(self.threshold_chi2, 3),
+                "auto_margin": round(self.margin, 4),
                 "auto_columns": self.columns, "auto_choice": self.choice, "auto_seconds": round(self.seconds, 3)}
 
 
@@ -107,7 +145,8 @@ def detail_pixels(object_fraction: np.ndarray, pixel_index: np.ndarray, shape: t
 
 def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: int, max_depth: int, seed: int,
             scale: int, target_noise: float, noise_source: str) -> AutoReport:
-    """Compare the indirect light of columns ``texels`` with their direct light (C, M, S)."""
+    """Measure the indirect light of columns ``texels`` against their direct light (C, M, S) and decide by its
+    effect on the fit (:func:`indirect_effect`) at ``target_noise`` (relative, per fitted pixel)."""
     import time
 
     t0 = time.perf_counter()
@@ -131,9 +170,14 @@ def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: 
     bias2 = max(np.sum(mean**2) - noise2, 0.0)
     rel = float(np.sqrt(bias2) / dsum) if dsum > 0 else 0.0
     noise = float(np.sqrt(noise2) / dsum) if dsum > 0 else 0.0
-    choice = "direct" if rel <= target_noise else "direct+indirect"
+    # the indirect image of the sampled columns' lighting, its Monte Carlo noise removed: scaled to the
+    # noise-corrected norm (the raw mean's norm includes the measurement's own noise)
+    raw = float(np.linalg.norm(mean))
+    indirect = mean * (np.sqrt(bias2) / raw if raw > 0 else 0.0)
+    effect, threshold = indirect_effect(d.sum(axis=2), indirect, target_noise)
+    choice = "direct+indirect" if effect > threshold else "direct"
     return AutoReport(rel, noise, float(np.median(per)) if per else 0.0, float(target_noise), noise_source,
-                      int(len(texels)), choice, time.perf_counter() - t0)
+                      int(len(texels)), choice, effect, threshold, time.perf_counter() - t0)
 
 
 class IndirectCorrection:

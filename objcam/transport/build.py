@@ -151,8 +151,8 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
         from objcam.transport.path import PathRenderer
 
         noise, source = target_noise if target_noise is not None else (0.01, "assumed")
-        if s.auto_noise is not None:
-            noise, source = float(s.auto_noise), "param"
+        if s.auto_noise is not None:  # per photo pixel, as noise_sigma
+            noise, source = float(s.auto_noise) / max(int(f), 1), "param"
         pr = PathRenderer(geo, camera, f, samples.pixel_index, s.env_height)
         pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height)
         sample_tex = texel_index[pos]
