@@ -9,6 +9,7 @@ gradient-descent baseline through Mitsuba (objcam.solvers.adam) instead.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,8 @@ from objcam.solvers.plan.known import solve_known
 from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.plan.unknown import solve_unknown
+from objcam.solvers.plan.verdict import assess
+from objcam.threads import single_blas_thread
 
 
 def solve_capture(scene, data: dict[str, TargetData], params: SolveParams,
@@ -37,7 +40,7 @@ def solve_capture(scene, data: dict[str, TargetData], params: SolveParams,
         raise StageError("a supersampled transport (transport.supersample) is solved by method exact or paper, "
                          "not method=adam", capture / "capture.toml", "set transport.supersample=1")
     if params.method == "adam":
-        return solve_adam(scene, data, params)
+        return with_verdicts(scene, data, params, solve_adam(scene, data, params))
     pairs = [(str(data[t.name].transport.folder), getattr(t, "illumination", "") or t.name, t.name)
              for t in scene.targets]
     try:
@@ -56,7 +59,19 @@ def solve_capture(scene, data: dict[str, TargetData], params: SolveParams,
             continue
         comp.texel_index = np.unique(np.concatenate([tr_of_cam[c].texel_index for c in comp.cameras]))
         per_target.update(solve_unknown(scene, data, params, comp, tr_of_cam, names_of))
-    return {t.name: per_target[t.name] for t in scene.targets}
+    return with_verdicts(scene, data, params, {t.name: per_target[t.name] for t in scene.targets})
+
+
+def with_verdicts(scene, data: dict[str, TargetData], params: SolveParams,
+                  sols: dict[str, TargetSolution]) -> dict[str, TargetSolution]:
+    """Every solution's solve.json gains ``verdict`` (objcam.solvers.plan.verdict: grade, reasons, measures)."""
+    for name, sol in sols.items():
+        t0 = time.perf_counter()
+        with single_blas_thread():
+            v = assess(scene.target(name), data[name], sol, params.lr)
+        v["seconds"] = round(time.perf_counter() - t0, 4)
+        sol.info["verdict"] = v
+    return sols
 
 
 def solve_adam(scene, data: dict[str, TargetData], params: SolveParams) -> dict[str, TargetSolution]:

@@ -106,3 +106,25 @@ SCALE_NOTE = ("unknown albedo: the envmap and the albedo are known only up to on
 SCALE_PINNED_NOTE = ("unknown albedo, with pixels of known albedo held at it: they fix the scale that c * albedo "
                      "and envmap / c would otherwise leave free, so the envmap and the albedo are absolute")
 
+
+#: The verdict (objcam.solvers.plan.verdict). Chosen on the hard-case suite (bench/results.md, issue 22: 96
+#: targets the solver never saw, their SSIM against the truth beside each measure) as round values with a stated
+#: meaning, then checked: red only where SSIM < 0.7, and the red measures' rule holding on every family.
+#: chi2 (residual over the noise, squared): 4 = a residual twice the noise; 20 = 4.5x, a model that misses what the
+#: photo holds (every hard-suite target above it scored SSIM < 0.7).
+VERDICT_CHI2_YELLOW = 4.0
+VERDICT_CHI2_RED = 20.0
+#: uncertain_area: the share of the sky whose posterior spread exceeds its value; red when three quarters of the
+#: map are drawn by the priors.
+VERDICT_UNCERTAIN_YELLOW = 0.5
+VERDICT_UNCERTAIN_RED = 0.75
+#: below_horizon_energy: energy the solve put where the support hides the sky (the truth's share is ~0).
+VERDICT_BELOW_YELLOW = 0.15
+VERDICT_BELOW_RED = 0.3
+#: brightest_seen: the brightest texel's column norm over the median one; under a quarter: a poorly seen direction.
+VERDICT_SEEN_YELLOW = 0.25
+#: pixels_excluded: more than a tenth of A's pixels unusable.
+VERDICT_EXCLUDED_YELLOW = 0.1
+#: the transport's auto margin (effect / threshold) when it chose direct light only: above 1/3 the indirect light
+#: was within a factor 3 of mattering.
+VERDICT_MARGIN_YELLOW = 1.0 / 3.0

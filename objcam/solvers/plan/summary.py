@@ -21,12 +21,15 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
                    for v in unk if v.get("bounce_refits")), default=0)
     n_final = max(((v.get("final_envmap") or {}).get("rounds", 0) for v in unk), default=0)
     free = [k for k, v in per_target.items() if v.get("envmap_constrained_by_data") is False]
+    red = {k: v["verdict"]["reasons"][0] for k, v in per_target.items()
+           if (v.get("verdict") or {}).get("grade") == "red" and k not in free}
     summary = ((f"WARNING: joint solve ({method}) {div['message']}; fix: use solve.method=exact (monotone) "
                 "or a smaller solve.alpha. " if div else "")
                + (f"WARNING: {', '.join(free)}: one illumination and every albedo unknown, so the albedo alone can "
                   "explain the photo and the envmap comes from the priors, not the data; fix: give the support's or "
                   "the object's albedo in capture.toml [albedo], or photograph two or more illuminations. "
                   if free else "")
+               + "".join(f"WARNING: {k} graded red: {why}. " for k, why in red.items())
                + f"{len(per_target)} target(s), {method}"
                + ((", joint albedo + envmap (envmap known only up to scale)" if ambiguous else
                    ", joint albedo + envmap (scale fixed by the pixels of known albedo)") if joint else "")
@@ -34,8 +37,12 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
                + (f", support light redone {n_refit}x from the estimated albedo" if n_refit else "")
                + (f", final step: {n_final} round(s) of the albedo's TV step and the envmaps at it" if n_final else "")
                + f", {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
-               + ", ".join(f"{k}: image residual {v['relative_image_residual']:.3f}" for k, v in per_target.items()))
+               + ", ".join(f"{k}: image residual {v['relative_image_residual']:.3f}"
+                           + (f", {v['verdict']['grade']}" if v.get("verdict") else "") for k, v in per_target.items()))
     metrics = {"targets": per_target, "seconds": round(total, 4)}
+    grades = [v["verdict"]["grade"] for v in per_target.values() if v.get("verdict")]
+    if grades:  # the capture's worst grade
+        metrics["verdict"] = max(grades, key=("green", "yellow", "red").index)
     if joint:
         metrics["scale_ambiguous"] = ambiguous
     return summary, metrics

@@ -1,0 +1,146 @@
+"""The verdict: how far one recovered envmap can be trusted, green / yellow / red, from what the data say.
+
+No ground truth is used: every measure comes from the photo, the model and the solve.
+
+* ``chi2``: the residual per fitted pixel value over the stated noise (``noise_sigma`` per photo pixel over the
+  pooling, else estimated from the image), squared and averaged. ~1 when the model explains the photo to its
+  noise; far above it, the photo holds light or geometry the model lacks (interreflections, a wrong mesh, a
+  saturated area, a hot pixel).
+* ``uncertain_area``: the share of the sky (solid angle above the horizon) whose texels' uncertainty exceeds
+  their recovered value. Uncertainty per texel: ``sigma sqrt(diag(Q^-1))`` with ``Q = A^T A + ls D^T D + lr I``
+  at the quadratic prior's noise rule (ls = LS_NOISE_FACTOR sigma^2): the posterior spread of the recovered
+  radiance under the stated noise and a smoothness prior. Where it exceeds the value, the priors, not the photo,
+  drew that part of the map.
+* ``below_horizon_energy``: the share of the map's energy (luminance x solid angle) the solve put below the
+  horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
+  texel's elevation and its column norm over the median column norm (how strongly the photo sees that direction).
+* ``pixels_excluded``: the share of A's pixels the solve could not use (saturated, invalid, hot).
+* the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
+
+Thresholds (objcam.solvers.plan.defaults, ``VERDICT_*``) and how they were chosen: bench/results.md, issue 22.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+
+from objcam import solvers
+from objcam.solvers.plan.defaults import (
+    LS_NOISE_FACTOR,
+    VERDICT_BELOW_RED,
+    VERDICT_BELOW_YELLOW,
+    VERDICT_CHI2_RED,
+    VERDICT_CHI2_YELLOW,
+    VERDICT_EXCLUDED_YELLOW,
+    VERDICT_MARGIN_YELLOW,
+    VERDICT_SEEN_YELLOW,
+    VERDICT_UNCERTAIN_RED,
+    VERDICT_UNCERTAIN_YELLOW,
+)
+from objcam.solvers.plan.targets import TargetData, TargetSolution
+
+GRADES = ("green", "yellow", "red")
+
+
+def fitted_noise(target, d: TargetData) -> tuple[float | None, str]:
+    """(relative noise per fitted pixel, its source): noise_sigma over the pooling factor, else estimated from the
+    pooled photo (objcam.transport.auto.estimate_relative_noise), else None."""
+    from objcam.transport.auto import estimate_relative_noise
+
+    if target.noise_sigma:
+        return float(target.noise_sigma) / max(int(d.transport.downsample), 1), "noise_sigma"
+    est = estimate_relative_noise(d.pooled, d.pooled_ok)
+    return (float(est), "estimated") if est else (None, "unknown")
+
+
+def chi2_per_value(y: np.ndarray, fit: np.ndarray, sigma_rel: float) -> tuple[float, float]:
+    """(chi-squared per pixel value, absolute sigma) of the fit (M, 3) to y (M, 3) at relative noise sigma_rel
+    (over the median positive pixel value, as noise_sigma)."""
+    pos = y[y > 0]
+    sigma_abs = sigma_rel * (float(np.median(pos)) if pos.size else 1.0)
+    return float(np.mean(((y - fit) / sigma_abs) ** 2)), sigma_abs
+
+
+def texel_uncertainty(G: np.ndarray, D, sigma_rel: float, sigma_abs: float, lr_rel: float) -> np.ndarray:
+    """(N,) posterior standard deviation of each texel's radiance: ``sigma_abs sqrt(diag(Q^-1))``,
+    ``Q = G + ls D^T D + lr I`` with ls = LS_NOISE_FACTOR sigma_rel^2 and lr relative to mean(diag(G))."""
+    ls_abs, lr_abs = solvers.absolute_weights(G, LS_NOISE_FACTOR * sigma_rel**2, max(lr_rel, 1e-6))
+    Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
+    L = sla.cholesky(Q, lower=True, check_finite=False)
+    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+    return sigma_abs * np.sqrt(np.einsum("ij,ij->j", Linv, Linv))
+
+
+def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
+    """The verdict record of one target (solve.json's ``verdict``): ``grade``, ``reasons`` (one line each, the
+    worst first) and the measures above."""
+    tr, use, y = d.transport, d.use, d.y
+    env = sol.fine[0] if sol.fine is not None else sol.envmap  # A's own grid
+    X = tr.x_from_envmap(env).astype(np.float64)
+    fit = np.asarray(sol.prediction, np.float64).reshape(-1, 3)[tr.pixel_index][use]  # the solve's own model
+    sigma_rel, noise_source = fitted_noise(target, d)
+    lum = X.mean(axis=1)
+    omega = tr.solid_angle.astype(np.float64)
+    up = tr.directions[:, 2] > 0
+    energy = np.clip(lum, 0, None) * omega
+    total = max(float(energy.sum()), 1e-300)
+    rec: dict = {"noise_per_fitted_pixel": sigma_rel, "noise_source": noise_source,
+                 "pixels_excluded": float(1.0 - use.mean()),
+                 "below_horizon_energy": float(energy[~up].sum() / total)}
+    G = tr.gram().mean(axis=0)
+    if not use.all():
+        G = G - sum(solvers.gram(tr.A[c][~use]) for c in range(tr.A.shape[0])) / tr.A.shape[0]
+    col = np.sqrt(np.clip(np.diag(G), 0, None))
+    jb = int(np.argmax(lum))
+    rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(tr.directions[jb, 2], -1, 1))))
+    rec["brightest_seen"] = float(col[jb] / max(float(np.median(col[up])) if up.any() else 1.0, 1e-300))
+    if sigma_rel:
+        rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
+        D = solvers.difference_operator(tr.grid, tr.texel_index)
+        s = texel_uncertainty(G, D, sigma_rel, sigma_abs, lr_rel)
+        unsure = s > lum
+        rec["uncertain_area"] = float(omega[unsure & up].sum() / max(omega[up].sum(), 1e-300))
+        rec["uncertain_energy"] = float(energy[unsure].sum() / total)
+    metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
+    if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
+        rec["transport_margin"] = float(metrics["auto_margin"])
+    rec["grade"], rec["reasons"] = grade(rec, unconstrained=sol.info.get("envmap_constrained_by_data") is False)
+    return rec
+
+
+def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
+    """(grade, reasons) from the measures of :func:`assess` (missing measures are not judged)."""
+    red, yellow = [], []
+    if unconstrained:
+        red.append("one illumination and every albedo unknown: the priors, not the photo, drew the envmap")
+    chi2 = m.get("chi2")
+    if chi2 is not None and chi2 > VERDICT_CHI2_RED:
+        red.append(f"the model leaves a residual {np.sqrt(chi2):.1f}x the noise: the photo holds light or "
+                   "geometry it lacks (interreflections, mesh, saturation)")
+    elif chi2 is not None and chi2 > VERDICT_CHI2_YELLOW:
+        yellow.append(f"residual {np.sqrt(chi2):.1f}x the noise")
+    ua = m.get("uncertain_area")
+    if ua is not None and ua > VERDICT_UNCERTAIN_RED:
+        red.append(f"{ua:.0%} of the sky is not determined by the photo (uncertainty above the value)")
+    elif ua is not None and ua > VERDICT_UNCERTAIN_YELLOW:
+        yellow.append(f"{ua:.0%} of the sky weakly determined")
+    below, el = m.get("below_horizon_energy", 0.0), m.get("brightest_elevation_deg", 90.0)
+    if el < 0:
+        red.append(f"the brightest light is below the horizon ({el:.1f} deg), seen only past the support's edge")
+    if below > VERDICT_BELOW_RED:
+        red.append(f"{below:.0%} of the energy below the horizon")
+    elif below > VERDICT_BELOW_YELLOW:
+        yellow.append(f"{below:.0%} of the energy below the horizon")
+    if m.get("brightest_seen", 1.0) < VERDICT_SEEN_YELLOW and el >= 0:
+        yellow.append(f"the brightest light is in a poorly seen direction (elevation {el:.0f} deg)")
+    if m.get("pixels_excluded", 0.0) > VERDICT_EXCLUDED_YELLOW:
+        yellow.append(f"{m['pixels_excluded']:.0%} of the pixels unusable (saturated, invalid or hot)")
+    mg = m.get("transport_margin")
+    if mg is not None and mg > VERDICT_MARGIN_YELLOW:
+        yellow.append(f"interreflections left out by a close margin ({mg:.2f} of the threshold)")
+    if m.get("noise_source") == "unknown":
+        yellow.append("noise unknown: give noise_sigma in capture.toml")
+    if red:
+        return "red", red + yellow
+    return ("yellow", yellow) if yellow else ("green", [])
