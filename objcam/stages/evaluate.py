@@ -252,6 +252,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         # strict JSON: an undefined metric (e.g. no bright source in an all-zero estimate) is null, not NaN
         m = _finite_or_null(m)
         m["truth_source"] = source
+        if sinfo.get("verdict"):  # the solve's own grade (issue 22), beside what the truth says of it
+            m["verdict"] = {"grade": sinfo["verdict"]["grade"], "reasons": sinfo["verdict"]["reasons"]}
         m["truth_file"] = (str(tpath.relative_to(inputs.capture)) if tpath is not None
                            else f"objcam/probe/ ({target.illumination or target.name})")
         results[target.name] = m
@@ -276,4 +278,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     if rm:
         beat = sum(r["beats_row_mean"]["ssim"] for r in results.values() if "baselines" in r)
         summary += f"; the truth's row-mean map scores SSIM {np.mean(rm):.3f} (beaten on {beat}/{len(rm)})"
+    grades = [r["verdict"]["grade"] for r in results.values() if "verdict" in r]
+    if grades:
+        summary += "; verdict " + ", ".join(f"{grades.count(g)} {g}" for g in ("green", "yellow", "red")
+                                            if g in grades)
     return StageOutputs(metrics={"targets": results, "mean": mean}, summary=summary)

@@ -1,0 +1,100 @@
+"""The verdict on every solved envmap (issue 22, item 6): green / yellow / red from what the data say.
+
+Unit level on a renderer-free scene (ground pixels under occluding spheres, tests/toy_scenes.py) whose truth is
+known: the true envmap fitted to its own noisy photo is green; the same photo with one hot pixel of 1e6, or a
+wrong (rotated) envmap, is red. Pipeline level: a camera looking past the object (the object at the image's edge,
+its shadows mostly out of view) is graded red, and the solve's summary warns.
+"""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from objcam.envmap import EnvGrid
+from objcam.pipeline.cli import main
+from objcam.solvers.plan.targets import TargetData, TargetSolution
+from objcam.solvers.plan.verdict import assess, grade
+from objcam.transport.storage import Transport
+from tests.toy_scenes import sphere_shadow_transport, sky_with_sun
+
+H = 16
+SIDE = 40
+NOISE = 0.01
+
+
+@pytest.fixture(scope="module")
+def toy():
+    grid = EnvGrid(H)
+    keep, A = sphere_shadow_transport(grid, SIDE)
+    m = A.shape[0]
+    tr = Transport(A=A[None].astype(np.float32), pixel_index=np.arange(m), image_shape=(SIDE, SIDE), downsample=1,
+                   texel_index=keep, env_height=H, directions=grid.directions().reshape(-1, 3)[keep],
+                   solid_angle=grid.solid_angles().ravel()[keep], albedo=np.ones((m, 3), np.float32),
+                   unknown_albedo=np.zeros(m, bool), coverage=np.ones(m, np.float32),
+                   object_fraction=np.zeros(m, np.float32), model="direct", samples=None, spp=None, max_depth=2,
+                   camera=None)
+    truth = sky_with_sun(grid, keep, sun=30.0)
+    clean = tr.predict(tr.x_from_envmap(truth))
+    rng = np.random.default_rng(0)
+    photo = clean + NOISE * np.median(clean[clean > 0]) * rng.normal(size=clean.shape)
+    return tr, truth, clean, photo
+
+
+def _verdict(tr, photo, env, prediction):
+    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
+    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
+    sol = TargetSolution(env, None, prediction, {})
+    return assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)
+
+
+def test_truth_fitted_to_its_noise_is_green(toy):
+    tr, truth, clean, photo = toy
+    v = _verdict(tr, photo, truth, clean)
+    assert v["chi2"] == pytest.approx(1.0, abs=0.1)  # the residual is the noise itself
+    assert v["below_horizon_energy"] == 0.0 and v["brightest_elevation_deg"] > 0
+    assert 0.0 <= v["uncertain_area"] < 0.5
+    assert v["grade"] == "green" and v["reasons"] == []
+
+
+def test_a_hot_pixel_turns_red(toy):
+    tr, truth, clean, photo = toy
+    hot = photo.copy()
+    hot[SIDE // 2, SIDE // 3] = 1e6
+    v = _verdict(tr, hot, truth, clean)
+    assert v["chi2"] > 1e6 and v["grade"] == "red" and "residual" in v["reasons"][0]
+
+
+def test_a_wrong_envmap_turns_red(toy):
+    tr, truth, clean, photo = toy
+    wrong = np.roll(truth, truth.shape[1] // 2, axis=1)  # the sun half a turn away
+    v = _verdict(tr, photo, wrong, tr.predict(tr.x_from_envmap(wrong)))
+    assert v["chi2"] > 20 and v["grade"] == "red"
+
+
+def test_grade_rules():
+    assert grade({"chi2": 1.0, "uncertain_area": 0.1}) == ("green", [])
+    g, why = grade({"chi2": 9.0, "uncertain_area": 0.1})
+    assert g == "yellow" and why == ["residual 3.0x the noise"]
+    g, why = grade({"chi2": 1.0, "uncertain_area": 0.9, "below_horizon_energy": 0.2})
+    assert g == "red" and why[0].startswith("90% of the sky") and "below the horizon" in why[1]
+    assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
+    assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
+    assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
+
+
+def test_camera_looking_past_the_object_is_red(tmp_path, capsys):
+    cap = tmp_path / "past"
+    cams = '[{"width": 48, "height": 48, "distance": 0.3, "target": [0.1, 0.0, 0.0], "fov_deg": 30}]'
+    assert main(["synth", str(cap), "--envmap", "sunrise", "--spp", "64", "--cameras", cams]) == 0
+    capsys.readouterr()
+    assert main(["run", str(cap), "--until", "solve", "--set", "transport.model=direct"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    v = json.loads((cap / "objcam" / "solve" / "t0" / "solve.json").read_text())["verdict"]
+    assert v["grade"] == "red" and v["uncertain_area"] > 0.75
+    stage = json.loads((cap / "objcam" / "solve" / "stage.json").read_text())
+    assert stage["metrics"]["verdict"] == "red"
+    assert "WARNING: t0 graded red" in out
