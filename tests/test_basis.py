@@ -115,3 +115,30 @@ def test_the_merged_joint_solve_reports_the_texels_objective_and_recovers_a_grou
     np.testing.assert_allclose(fine, res.objective, rtol=1e-6)
     assert np.linalg.norm(res.x - x_true) / np.linalg.norm(x_true) < 1e-2
     assert np.linalg.norm(res.rho[0] - rho) / np.linalg.norm(rho) < 1e-2
+
+
+def test_restrict_weak_excludes_or_ties_to_the_texel_above():
+    from objcam.solvers.basis import restrict_weak
+
+    grid = EnvGrid(8)  # 8 x 16
+    w = grid.width
+    keep = np.arange(5 * w)  # rows 0-4: row 4 lies below the horizon
+    weak = keep // w == 4
+    weak[3 * w + 2] = True  # one weak texel above the horizon: row 3, column 2 (its row-4 texel ties through it)
+    P0 = texel_basis(grid, keep, 1.0)  # rows 0-1 merge near the zenith
+    n0 = P0.shape[1]
+    ex = restrict_weak(grid, keep, P0, weak, "exclude")
+    assert ex.shape == (keep.size, n0 - w - 1)
+    assert np.all(ex.getnnz(axis=1)[weak] == 0) and np.all(ex.getnnz(axis=1)[~weak] == 1)
+    ti = restrict_weak(grid, keep, P0, weak, "tie")
+    assert ti.shape == (keep.size, n0 - w - 1) and np.all(ti.getnnz(axis=1) == 1)
+    col = ti.tocoo().col[np.argsort(ti.tocoo().row)]
+    for c in range(w):  # every row-4 texel shares the group of row 2 (c = 2) or row 3 (the others) above it
+        above = 2 * w + c if c == 2 else 3 * w + c
+        assert col[4 * w + c] == col[above]
+    assert col[3 * w + 2] == col[2 * w + 2]
+    x = ti @ np.arange(ti.shape[1], dtype=float)  # the same objective's envmap: weak texels copy the one above
+    assert x[4 * w + 5] == x[3 * w + 5]
+    assert restrict_weak(grid, keep, None, np.zeros(keep.size, bool), "tie") is None
+    with pytest.raises(ValueError):
+        restrict_weak(grid, keep, P0, weak, "floor")

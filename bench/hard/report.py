@@ -83,6 +83,17 @@ def targets(rows: list[dict]) -> list[str]:
         b_t = np.mean([r["beats_row_mean"]["tonemapped_rmse"] for r in s])
         line(b_s >= 0.8, f"beats the row-mean oracle in SSIM in >= 80% of targets (issue 28): {100 * b_s:.0f}% "
              f"(tonemapped RMSE: {100 * b_t:.0f}%)")
+        graded = [r for r in s if (r.get("verdict") or {}).get("grade")]
+        if graded:
+            low = [r for r in graded if r["ssim"] < 0.4]
+            high = [r for r in graded if r["ssim"] >= 0.7]
+            low_red = sum(r["verdict"]["grade"] == "red" for r in low)
+            high_red = [r["target"] for r in high if r["verdict"]["grade"] == "red"]
+            line(low_red == len(low), f"the verdict: every target with SSIM < 0.4 graded red: {low_red} of "
+                 f"{len(low)}" + (f" (not red: {', '.join(r['target'] for r in low if r['verdict']['grade'] != 'red')})"
+                                  if low_red < len(low) else ""))
+            line(not high_red, f"no target with SSIM >= 0.7 graded red: {len(high_red)} of {len(high)}"
+                 + (f" ({', '.join(high_red)})" if high_red else ""))
     if unsolved:
         for kind in sorted({r["status"] for r in unsolved}):
             k = [r for r in unsolved if r["status"] == kind]
@@ -128,13 +139,13 @@ def case_table(rows: list[dict]) -> list[str]:
     bands = " / ".join(f"{lo:g}-{hi:g}" for lo, hi in BANDS)
     lines = ["| target | object, camera el., albedo | noise (all) | status | SSIM | masked | const. SSIM | "
              "row-mean SSIM | tm RMSE | / row-mean | rel. RMSE | band energy " + bands + " | below horizon | "
-             "brightest (deg) | contrast | A (s) | solve (s) |",
-             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|"]
+             "brightest (deg) | contrast | A (s) | solve (s) | verdict |",
+             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         geo = f"{r['object']}, {r['elevation_deg']:g}, {r['albedo']} | {100 * r['noise_sigma']:.2g}%"
         if r["status"] != "ok":
             why = f" ({r['negative_pixels']} px < 0, min {r['min']:.2g})" if r["negative_pixels"] else ""
-            lines.append(f"| {r['target']} | {geo} | {r['status']}{why} |" + " |" * 13)
+            lines.append(f"| {r['target']} | {geo} | {r['status']}{why} |" + " |" * 14)
             continue
         b = r["baselines"]
         lines.append(
@@ -144,8 +155,18 @@ def case_table(rows: list[dict]) -> list[str]:
             f"| {' / '.join(_f(x, '.2f') for x in r['band_energy'])} | {_f(r.get('below_horizon_energy'), '.2f')} "
             f"| {_f(r['brightest_angle_deg'], '.1f')} "
             f"| {min(r['source_contrast'], 1e6):.3g} | {r['a_seconds']:.1f}{'*' if r.get('a_cached') else ''} "
-            f"| {_f(r['solve_seconds'], '.2f')}{'*' if r.get('solve_cached') else ''} |")
+            f"| {_f(r['solve_seconds'], '.2f')}{'*' if r.get('solve_cached') else ''} "
+            f"| {_verdict_cell(r)} |")
     return lines
+
+
+def _verdict_cell(r: dict) -> str:
+    """The solve's grade, with chi-squared and the share of sky not determined (objcam.solvers.plan.verdict)."""
+    v = r.get("verdict") or {}
+    if not v.get("grade"):
+        return ""
+    return (f"{v['grade']} (chi2 {_f(v.get('chi2'), '.1f')}, undetermined {_f(v.get('uncertain_area'), '.2f')}, "
+            f"{'A: ' + str(r.get('transport_model')) if r.get('transport_model') else ''})")
 
 
 def markdown(rows: list[dict], header: list[str], noises) -> str:
@@ -171,6 +192,8 @@ def markdown(rows: list[dict], header: list[str], noises) -> str:
              "noise, the render's own Monte Carlo noise), both relative to the median pixel. Contrast: the truth's "
              "brightest source's peak over the next one's. A (s): the transport stage's wall time, one A per "
              "geometry (shared by its targets); * marks a time read from a stage "
-             "objcam took from its cache (an earlier run's).", "",
+             "objcam took from its cache (an earlier run's). Verdict: the solve's own grade from the data alone "
+             "(objcam.solvers.plan.verdict), its chi-squared against the noise, the share of the sky its "
+             "uncertainty exceeds, and the transport model `auto` chose.", "",
              *case_table(rows)]
     return "\n".join(lines) + "\n"

@@ -71,3 +71,38 @@ def group_sizes(P: sp.spmatrix) -> np.ndarray:
 def unknowns(texel_index: np.ndarray, P: sp.spmatrix | None) -> int:
     """Number of unknowns per envmap channel: the groups of P, else the texels."""
     return int(np.size(texel_index) if P is None else P.shape[1])
+
+
+def restrict_weak(grid: EnvGrid, texel_index: np.ndarray, P: sp.spmatrix | None, weak: np.ndarray,
+                  mode: str) -> sp.csr_matrix | None:
+    """The basis P (N, N'; None: one unknown per texel) with the ``weak`` (N,) bool texels held to a stated prior.
+
+    mode 'exclude': weak texels belong to no group (x = P z is 0 there; the solve leaves them unsolved);
+    'tie': each weak texel joins the group of the first non-weak kept texel above it in its lat-long column (its
+    radiance equals that texel's), left alone when there is none; 'keep': P unchanged.
+    Groups left empty are dropped; the others keep their order.
+    """
+    weak = np.asarray(weak, bool)
+    if mode == "keep" or not weak.any():
+        return None if P is None else sp.csr_matrix(P)
+    t = np.asarray(texel_index, dtype=np.int64).ravel()
+    n = t.size
+    gid = np.arange(n) if P is None else sp.csr_matrix(P).tocoo().col[np.argsort(sp.csr_matrix(P).tocoo().row)]
+    rows = np.ones(n, bool)
+    if mode == "exclude":
+        rows = ~weak
+    elif mode == "tie":
+        pos = {int(v): i for i, v in enumerate(t)}
+        order = np.flatnonzero(weak)[np.argsort(t[weak] // grid.width, kind="stable")]  # top rows first
+        gid = gid.copy()
+        tied = np.zeros(n, bool)
+        for i in order:
+            r, c = divmod(int(t[i]), grid.width)
+            above = pos.get((r - 1) * grid.width + c) if r > 0 else None
+            if above is not None and (not weak[above] or tied[above]):
+                gid[i], tied[i] = gid[above], True
+    else:
+        raise ValueError(f"unknown weak-texel mode {mode!r}")
+    _, new = np.unique(gid[rows], return_inverse=True)
+    keep = np.flatnonzero(rows)
+    return sp.csr_matrix((np.ones(keep.size), (keep, new.ravel())), shape=(n, int(new.max()) + 1 if keep.size else 0))

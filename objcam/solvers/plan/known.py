@@ -19,15 +19,16 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import scipy.sparse as sp
 
 from objcam import solvers
 from objcam.envmap import EnvGrid
-from objcam.solvers.basis import merge_gram, texel_basis
+from objcam.solvers.basis import merge_gram, restrict_weak, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import solve_edges
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN
 from objcam.solvers.plan.params import SolveParams
-from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, noise_ls, texel_group
+from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, noise_ls, texel_group, weak_texels
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.threads import parallel_map, single_blas_thread
@@ -124,7 +125,10 @@ def known_basis(tr, params: SolveParams, split: np.ndarray | None = None):
     (objcam.solvers.refine; None: none refined)."""
     g = texel_group(params, known=True)
     if tr.output_height == tr.env_height:
-        return texel_basis(tr.grid, tr.texel_index, g)
+        P = texel_basis(tr.grid, tr.texel_index, g)
+        if params.weak_texels == "keep":
+            return P
+        return restrict_weak(tr.grid, tr.texel_index, P, weak_texels(tr, params.weak_fraction), params.weak_texels)
     if split is None:
         split = np.zeros(coarse_of(tr.grid, tr.texel_index, tr.output_height)[0].size, bool)
     return refined_basis(tr.grid, tr.texel_index, tr.output_height, split, g)
@@ -136,7 +140,9 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
     record (channels_in_A, solve_seconds, iterations, kkt_residual_max, objective, ls_relative, ls_source)."""
     use, y = d.use, d.y
     env = tr.envmap_from_x(X)
-    mask = texel_mask(grid, tr.texel_index)
+    P = known_basis(tr, params)
+    solved = tr.texel_index if P is None else tr.texel_index[sp.csr_matrix(P).getnnz(axis=1) > 0]
+    mask = texel_mask(grid, solved)  # weak texels excluded (weak_texels=exclude) are not solved
     fine = None
     if tr.output_height != tr.env_height:  # supersampled A: write the area average (objcam.solvers.refine)
         fine = (env, mask)
@@ -146,7 +152,9 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
     rel_res = float(np.linalg.norm(fit - y[use]) / max(np.linalg.norm(y[use]), 1e-30))
     info = {
         "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
-        **basis_info(tr.texel_index, known_basis(tr, params), params, known=True),
+        **basis_info(tr.texel_index, P, params, known=True),
+        **({"weak_texels": params.weak_texels, "texels_weak": int(weak_texels(tr, params.weak_fraction).sum())}
+           if params.weak_texels != "keep" else {}),
         "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()),
         "channels_in_A": solve["channels_in_A"], "solve_seconds": solve["solve_seconds"],
         "iterations": solve["iterations"], "kkt_residual_max": solve["kkt_residual_max"],

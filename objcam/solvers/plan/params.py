@@ -73,6 +73,13 @@ class SolveParams(BaseModel):
         f"None: {TEXEL_GROUP_KNOWN:g} for a known albedo, {TEXEL_GROUP_JOINT:.3g} for the joint solve "
         "(bench/results.md). method=adam always optimises the texels")
     lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
+    weak_texels: Literal["keep", "exclude", "tie"] = Field(
+        "keep", description="known albedo: texels the photo barely sees (column norm under weak_fraction x the "
+        "median above the horizon: slivers below the horizon seen past the support's edge) -- 'keep': solved like "
+        "the others; 'exclude': not solved, 0 and unmarked in envmap_mask.png; 'tie': each takes the value of the "
+        "first well-seen texel above it in its column (objcam.solvers.basis.restrict_weak)")
+    weak_fraction: float = Field(0.1, gt=0, lt=1, description="weak_texels: the column-norm fraction under which "
+                                 "a texel counts as barely seen")
     refine_fraction: float = Field(REFINE_FRACTION, ge=0, le=1, description="supersampled A "
                                    "(transport.supersample > 1), known albedo: the fraction of output texels, those "
                                    "of most contrast in a pilot solve, solved on A's finer grid "

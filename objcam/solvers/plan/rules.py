@@ -80,3 +80,13 @@ def discrepancy_sigma(target, y: np.ndarray, rule: str) -> float | None:
     pos = y[y > 0]
     return float(target.noise_sigma * (np.median(pos) if pos.size else 1.0))
 
+
+
+def weak_texels(tr, fraction: float) -> np.ndarray:
+    """(N,) bool: A's texels whose column norm (channel mean of sqrt(diag(A^T A))) is under ``fraction`` x the
+    median over the texels above the horizon: directions the photo barely sees (a sliver below the horizon past
+    the support's edge sees ~1e-4-0.05 of a typical texel on the hard suite; the lowest row above it 0.14-1.2)."""
+    col = np.sqrt(np.clip(np.einsum("cii->ci", tr.gram()).mean(axis=0), 0, None))
+    up = tr.directions[:, 2] > 0
+    ref = float(np.median(col[up])) if up.any() else float(np.median(col))
+    return col < fraction * ref
