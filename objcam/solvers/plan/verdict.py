@@ -10,7 +10,9 @@ No ground truth is used: every measure comes from the photo, the model and the s
   their recovered value. Uncertainty per texel: ``sigma sqrt(diag(Q^-1))`` with ``Q = A^T A + ls D^T D + lr I``
   at the quadratic prior's noise rule (ls = LS_NOISE_FACTOR sigma^2): the posterior spread of the recovered
   radiance under the stated noise and a smoothness prior. Where it exceeds the value, the priors, not the photo,
-  drew that part of the map.
+  drew that part of the map. ``uncertain_visible_area``: the same where the spread also exceeds a fiftieth of the
+  map's 99th-percentile brightness (the tonemap's white): the undetermined part a viewer sees (a dark, flat,
+  undetermined background that the prior draws flat is not counted).
 * ``below_horizon_energy``: the share of the map's energy (luminance x solid angle) the solve put below the
   horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
   texel's elevation and its column norm over the median column norm (how strongly the photo sees that direction).
@@ -36,6 +38,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_MARGIN_YELLOW,
     VERDICT_SEEN_YELLOW,
     VERDICT_UNCERTAIN_RED,
+    VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
     VERDICT_UNCERTAIN_YELLOW,
 )
 from objcam.solvers.plan.targets import TargetData, TargetSolution
@@ -100,8 +103,14 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         D = solvers.difference_operator(tr.grid, tr.texel_index)
         s = texel_uncertainty(G, D, sigma_rel, sigma_abs, lr_rel)
         unsure = s > lum
-        rec["uncertain_area"] = float(omega[unsure & up].sum() / max(omega[up].sum(), 1e-300))
+        sky = max(float(omega[up].sum()), 1e-300)
+        rec["uncertain_area"] = float(omega[unsure & up].sum() / sky)
         rec["uncertain_energy"] = float(energy[unsure].sum() / total)
+        # what a viewer sees: texels whose spread exceeds both their value and a fiftieth of the map's
+        # 99th-percentile brightness (the tonemap's white): a dark, uncertain but flat background passes
+        white = float(np.percentile(lum[up], 99)) if up.any() else 0.0
+        shown = s > np.maximum(lum, VISIBLE_FRACTION * white)
+        rec["uncertain_visible_area"] = float(omega[shown & up].sum() / sky)
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
         rec["transport_margin"] = float(metrics["auto_margin"])
@@ -116,15 +125,15 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
         red.append("one illumination and every albedo unknown: the priors, not the photo, drew the envmap")
     chi2 = m.get("chi2")
     if chi2 is not None and chi2 > VERDICT_CHI2_RED:
-        red.append(f"the model leaves a residual {np.sqrt(chi2):.1f}x the noise: the photo holds light or "
-                   "geometry it lacks (interreflections, mesh, saturation)")
+        red.append(f"the model leaves a residual {np.sqrt(chi2):.1f}x the noise: the photo holds light, geometry or "
+                   "outliers it lacks (interreflections, mesh, saturation, fireflies; see residual.exr)")
     elif chi2 is not None and chi2 > VERDICT_CHI2_YELLOW:
-        yellow.append(f"residual {np.sqrt(chi2):.1f}x the noise")
-    ua = m.get("uncertain_area")
-    if ua is not None and ua > VERDICT_UNCERTAIN_RED:
-        red.append(f"{ua:.0%} of the sky is not determined by the photo (uncertainty above the value)")
+        yellow.append(f"residual {np.sqrt(chi2):.1f}x the noise: the photo holds light or geometry the model lacks")
+    uv, ua = m.get("uncertain_visible_area"), m.get("uncertain_area")
+    if uv is not None and uv > VERDICT_UNCERTAIN_RED:
+        red.append(f"{uv:.0%} of the sky is not determined by the photo at the brightness it is shown")
     elif ua is not None and ua > VERDICT_UNCERTAIN_YELLOW:
-        yellow.append(f"{ua:.0%} of the sky weakly determined")
+        yellow.append(f"{ua:.0%} of the sky weakly determined (uncertainty above the value)")
     below, el = m.get("below_horizon_energy", 0.0), m.get("brightest_elevation_deg", 90.0)
     if el < 0:
         red.append(f"the brightest light is below the horizon ({el:.1f} deg), seen only past the support's edge")
