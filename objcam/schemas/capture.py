@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Literal, Union
+from typing import Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -179,6 +179,8 @@ class CaptureManifest(BaseModel):
     board: BoardSpec | None = None
     scale: ScaleSpec | None = None
     probes: list[ProbeSpec] = Field(default_factory=list)
+    # [params.<stage>]: settings kept with the capture (objcam.pipeline.params checks the stage and names)
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _flavour(self):
