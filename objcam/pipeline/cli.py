@@ -7,6 +7,7 @@
     objcam evaluate CAPTURE               metrics against truth/ (synthetic captures)
     objcam design OUT [--mesh PATH] ...   compare occluders (bunny, sphere, coded mask, meshes); no capture
     objcam params [STAGE]                 every stage parameter: type, default, description
+    objcam export CAPTURE OUT             envmaps (EXR, HDR), meshes (PLY, OBJ, GLB), cameras, Mitsuba/Blender scenes
 """
 
 from __future__ import annotations
@@ -77,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
     from objcam.pipeline.params_cli import add_params_args
 
     add_params_args(p)
+    p = sub.add_parser("export", help="envmaps, meshes, cameras, Mitsuba and Blender scenes for other tools")
+    from objcam.pipeline.export_cli import add_export_args
+
+    add_export_args(p)
     return ap
 
 
@@ -161,6 +166,10 @@ def main(argv: list[str] | None = None) -> int:
             from objcam.design.cli import run_design_cmd
 
             return run_design_cmd(args)
+        if args.command == "export":
+            from objcam.pipeline.export_cli import run_export
+
+            return run_export(args)
         if args.command == "params":
             from objcam.pipeline.params_cli import run_params
 
