@@ -16,7 +16,10 @@ from objcam.pipeline.cache import manifest_digest
 from objcam.pipeline.cli import main
 from objcam.pipeline.engine import Pipeline, parse_overrides
 from objcam.schemas.capture import CaptureManifest
-from tests.test_pipeline import runs, toy  # noqa: F401 (the toy-stage fixture)
+from tests import test_pipeline
+
+toy = test_pipeline.toy  # the toy-stage fixture
+runs = test_pipeline.runs
 
 PARAM_LINE = re.compile(r"^  (\S+)  \((.+)\) = (.*)$")
 
@@ -105,7 +108,7 @@ def test_capture_toml_keeps_settings(tmp_path):
         assert "capture.toml" in str(e.value)
 
 
-def test_run_and_status_compare_against_capture_toml(toy):  # noqa: F811
+def test_run_and_status_compare_against_capture_toml(toy):
     (toy / "capture.toml").write_text("[params.second]\noffset = 5.0\n")
     value = lambda: float((toy / "objcam" / "second" / "value.txt").read_text())  # noqa: E731
     Pipeline(toy).run()
