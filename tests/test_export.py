@@ -168,3 +168,26 @@ def test_mitsuba_sensor_principal_point():
         y = np.asarray(mi.render(mi.load_string(xml)))[..., 0].astype(np.float64)
         centroid = np.array([(y * uu).sum(), (y * vv).sum()]) / y.sum()
         assert np.all(np.abs(centroid - cam.project(p)) < 0.05), (centroid, cam.project(p))
+
+
+def test_run_names_its_results_and_a_copied_capture_stays_fresh(exported, tmp_path, capsys):
+    """The end-of-run lines name the envmap file and point to export; a copy of the capture (objcam/ included)
+    is as fresh as the original, the report's benchmark input included (keyed by name and content, and shipped
+    in the package)."""
+    import shutil
+
+    from objcam.pipeline.engine import Pipeline, parse_overrides
+
+    cap, _ = exported
+    sets = ["transport.env_height=8", "transport.model=direct", "solve.prior=smooth"]
+    assert main(["run", str(cap), "-q", "--until", "solve", *[a for s in sets for a in ("--set", s)]]) == 0
+    out = capsys.readouterr().out
+    assert f"envmap t0: {cap / 'objcam' / 'solve' / 't0' / 'envmap.exr'}" in " ".join(out.split())
+    assert "objcam export" in out
+    copy = tmp_path / "elsewhere" / "cap"
+    shutil.copytree(cap, copy, symlinks=True)
+    a, b = Pipeline(cap, overrides=parse_overrides(sets)), Pipeline(copy, overrides=parse_overrides(sets))
+    key_a, parts = a.key("report")
+    assert key_a == b.key("report")[0]
+    assert set(parts["inputs"]) == {"outside:bench_results.json"}
+    assert {r["stage"]: r["state"] for r in b.status()}["solve"] == "done"

@@ -115,7 +115,23 @@ def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
     reports = pipe.run(until=until, force=args.force, only=only, on_stage=live)
     _print_reports(console, reports, f"objcam: {args.capture}")
     console.print(f"artifacts: {pipe.work}")
+    for line in _result_paths(pipe, {r.stage for r in reports if r.status in ("ran", "cached")}):
+        console.print(line)
     return 0
+
+
+def _result_paths(pipe, done: set[str]) -> list[str]:
+    """Where the results of this run are: each target's envmap (EXR, standard lat-long) and the report."""
+    lines = []
+    if "solve" in done:
+        for env in sorted(pipe.stage_dir("solve").glob("*/envmap.exr")):
+            lines.append(f"envmap {env.parent.name}: {env}")
+    page = pipe.stage_dir("report") / "index.html"
+    if "report" in done and page.is_file():
+        lines.append(f"report: {page}")
+    if lines:
+        lines.append(f"for Blender, Mitsuba, viewers: objcam export {escape(str(pipe.capture))} OUT")
+    return lines
 
 
 def _status(args) -> int:

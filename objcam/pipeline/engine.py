@@ -167,6 +167,8 @@ class Pipeline:
         for f in files:
             f = Path(f)
             rel = os.path.relpath(f, self.capture)
+            if rel.startswith("..") and getattr(mod, "READS_OUTSIDE_CAPTURE", False):
+                rel = f"outside:{f.name}"  # by name and content: a copied or moved capture keeps its key
             if not check_input(f, self.capture, outside_ok):
                 out[rel] = "missing"
             elif rel == "capture.toml":

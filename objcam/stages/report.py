@@ -42,7 +42,8 @@ class Params(BaseModel):
     max_image_width: int = Field(1200, ge=64, description="wider PNGs are downscaled (area) before inlining, "
                                                           "to keep the page small")
     bench_results: str | None = Field(None, description="the benchmark's results.json for the speed-against-error "
-                                      "plot; None: bench/results.json (or bench/out/results.json) of the source "
+                                      "plot; None: the copy shipped in objcam/assets (bench_results.json, what "
+                                      "`make bench` wrote last), else bench/out/results.json of a source "
                                       "checkout, if there is one")
 
 
