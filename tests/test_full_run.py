@@ -79,3 +79,33 @@ def test_photographed_targets_are_compared_up_to_the_camera_gain(run, tmp_path):
     assert "scale_channels" not in m and m["scale"] == pytest.approx(m["best_scale"])
     assert not 0.5 < m["scale"] < 2.0  # the camera's gain, which the fit took out
     assert m["ssim"] > 0.3, m
+
+
+def test_report_tells_the_whole_capture(run, tmp_path):
+    """The photographed capture's report in headless Chromium at 1280 px: a section per photo stage before the
+    targets, the envmap beside the truth and the chrome ball with a working exposure slider, the parameters and
+    the files; nothing wider than the page, no overlapping labels, no error; a screenshot of every section."""
+    from tests.test_report_browser import layout, measure
+
+    _, work = run
+    page = work / "report" / "index.html"
+    m = measure(page)
+    assert not m["errors"], m["errors"]
+    assert all(i["complete"] and i["w"] > 0 for i in m["images"])
+    shots = tmp_path / "shots"
+    info = layout(page, 1280, shots)
+    ids = [s for s, _ in info["sections"]]
+    want = ("ingest", "sfm", "geometry", "texture", "probe", "target-t0", "speed", "stages", "metrics", "params",
+            "files")
+    assert [s for s in ids if s in want] == list(want), ids
+    assert info["scrollWidth"] <= 1280 and not info["wide"] and not info["clashes"], info
+    # estimate, truth and chrome ball, drawn, and brighter at +2 EV
+    assert len(info["before"]) == 3 and min(info["before"]) > 0, info["before"]
+    assert all(a > b for a, b in zip(info["after"], info["before"])), (info["before"], info["after"])
+    assert (info["output"], info["output_after"]) == ("0 EV", "+2 EV")
+    text = page.read_text(encoding="utf-8")
+    for needle in ("objcam 0", "Parameters used", "../solve/t0/envmap.exr", "Quality:", "camera positions"):
+        assert needle in text, needle
+    for sid in ids:
+        assert (shots / f"{sid}.png").stat().st_size > 5_000, sid
+    print(f"\nscreenshots of the report's sections: {shots}")
