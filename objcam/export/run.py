@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,7 +69,7 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
     from objcam.export.envmaps import write_envmap
     from objcam.export.meshes import ExportMesh, write_mesh_files
     from objcam.export.mitsuba_xml import write_scene_xml
-    from objcam.image_io import atomic_write_text, read_exr, write_exr, write_tonemapped_png
+    from objcam.image_io import atomic_write_bytes, atomic_write_text, read_exr, write_exr, write_tonemapped_png
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.scene import MeshData
     from objcam.transport import load_transport
@@ -105,6 +104,9 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
         shapes.append((name, f"../meshes/{name}.obj", rgb, tex_rel))
         record["meshes"][name] = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
                                   "albedo": list(rgb) if rgb is not None else "texture", "albedo_source": source}
+        if not value.known:
+            record["warnings"].append(f"{name} albedo unknown: exported as its {source.split(':')[0]}; the solve "
+                                      "estimated it per pixel, so the Mitsuba scenes only approximate its prediction")
     # envmaps, images, Mitsuba scenes
     cameras, image_names = {}, {}
     for t in scene.targets:
@@ -136,8 +138,7 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
     for name, cam in views.items():
         png = src_views / f"{name[len('view_'):]}.png"
         if png.is_file():
-            (out / "images").mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(png, out / "images" / f"{name}.png")
+            atomic_write_bytes(out / "images" / f"{name}.png", png.read_bytes())
             files.append(out / "images" / f"{name}.png")
         cameras[name], image_names[name] = cam, f"images/{name}.png"
     files += write_colmap_text(out / "colmap", cameras, image_names)
