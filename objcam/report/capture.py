@@ -67,7 +67,7 @@ def _stage_lead(up: dict[str, Path], stage: str, keys: tuple[str, ...] = ()) -> 
     return "".join(parts)
 
 
-def _ingest(up: dict[str, Path], width: int) -> str:
+def _ingest(up: dict[str, Path], width: int, capture: Path | None = None) -> str:
     d = up["ingest"]
     parts = [_stage_lead(up, "ingest", ("views", "targets", "probes", "photos", "white_balance_source", "units"))]
     rows, figs = [], []
@@ -88,9 +88,10 @@ def _ingest(up: dict[str, Path], width: int) -> str:
     return "".join(parts)
 
 
-def _camera_positions_png(d: Path) -> bytes | None:
-    """Top view of the posed cameras around the board: views (dots, with their viewing direction), targets and
-    probes (stars), the origin (the object's foot)."""
+def _camera_positions_png(d: Path, board: tuple[float, float] | None = None) -> bytes | None:
+    """Top view of the posed cameras around the board (``board``: its (width, height) in metres, centred on the
+    origin): views (dots, with their viewing direction), targets and probes (stars), the origin (the object's
+    foot)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -115,6 +116,11 @@ def _camera_positions_png(d: Path) -> bytes | None:
     if not any_cam:
         return None
     ax.scatter([0], [0], marker="+", color="black", s=80, label="origin (object)")
+    if board is not None:
+        from matplotlib.patches import Rectangle
+
+        bw, bh = board
+        ax.add_patch(Rectangle((-bw / 2, -bh / 2), bw, bh, fill=False, color="0.3", lw=1.2, label="board"))
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -128,11 +134,19 @@ def _camera_positions_png(d: Path) -> bytes | None:
     return buf.getvalue()
 
 
-def _sfm(up: dict[str, Path], width: int) -> str:
+def _board_size(capture: Path | None) -> tuple[float, float] | None:
+    from objcam.schemas.capture import try_load
+
+    m = try_load(capture) if capture is not None else None
+    return m.board.size if m is not None and m.board is not None else None
+
+
+def _sfm(up: dict[str, Path], width: int, capture: Path | None = None) -> str:
     keys = ("grade", "registered", "images", "views_registered", "mean_reprojection_px", "board_corner_rms_mm",
             "board_reprojection_px", "n_points", "shared_camera")
-    return _stage_lead(up, "sfm", keys) + H.grid([H.figure(_camera_positions_png(up["sfm"]), "camera positions",
-                                                          plot=True, missing="no posed cameras")])
+    png = _camera_positions_png(up["sfm"], _board_size(capture))
+    return _stage_lead(up, "sfm", keys) + H.grid([H.figure(png, "camera positions around the board", plot=True,
+                                                          missing="no posed cameras")])
 
 
 def _silhouette_overlay(view_png: Path, mask_png: Path) -> bytes | None:
@@ -152,7 +166,7 @@ def _silhouette_overlay(view_png: Path, mask_png: Path) -> bytes | None:
     return buf.tobytes() if ok else None
 
 
-def _geometry(up: dict[str, Path], width: int) -> str:
+def _geometry(up: dict[str, Path], width: int, capture: Path | None = None) -> str:
     d = up["geometry"]
     g = _json(d / "geometry.json") or {}
     reg = g.get("registration") or {}
@@ -170,7 +184,7 @@ def _geometry(up: dict[str, Path], width: int) -> str:
     return "".join(parts)
 
 
-def _texture(up: dict[str, Path], width: int) -> str:
+def _texture(up: dict[str, Path], width: int, capture: Path | None = None) -> str:
     d = up["texture"]
     figs = [H.figure(_fit(_exr_png(d / f"albedo_{w}.exr", gamma_only=True)), f"{w} albedo over its UV atlas (linear, "
                      "gamma 1/2.2)", missing=f"no albedo_{w}.exr") for w in ("object", "support")]
@@ -178,7 +192,7 @@ def _texture(up: dict[str, Path], width: int) -> str:
         H.grid(figs)
 
 
-def _probe(up: dict[str, Path], width: int) -> str:
+def _probe(up: dict[str, Path], width: int, capture: Path | None = None) -> str:
     d = up["probe"]
     figs = []
     for folder in sorted(p for p in d.iterdir() if p.is_dir()):
@@ -194,12 +208,12 @@ SECTIONS = (("ingest", "Ingest: photos to linear HDR", _ingest), ("sfm", "Struct
             ("probe", "Chrome-ball probe", _probe))
 
 
-def capture_sections(up: dict[str, Path], width: int) -> tuple[str, list[tuple[str, str]]]:
+def capture_sections(up: dict[str, Path], width: int, capture: Path | None = None) -> tuple[str, list[tuple[str, str]]]:
     """HTML of every photo stage that ran, and (id, title) of each for the page's table of contents."""
     html, toc = [], []
     for stage, title, build in SECTIONS:
         if stage not in up or not (up[stage] / "stage.json").is_file():
             continue
-        html.append(f'<section id="{stage}"><h2>{H.esc(title)}</h2>{build(up, width)}</section>')
+        html.append(f'<section id="{stage}"><h2>{H.esc(title)}</h2>{build(up, width, capture)}</section>')
         toc.append((stage, title))
     return "".join(html), toc

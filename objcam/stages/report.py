@@ -224,7 +224,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     from objcam.report.capture import capture_sections
 
     body: list[str] = []
-    photo_html, photo_toc = capture_sections(up, params.max_image_width)
+    photo_html, photo_toc = capture_sections(up, params.max_image_width, capture)
     toc = "".join(f'<li><a href="#{s}">{H.esc(title)}</a></li>' for s, title in photo_toc)
     toc += "".join(f'<li><a href="#target-{H.esc(t)}">target {H.esc(t)}</a></li>' for t in targets)
     body.append(f"<nav><ul>{toc}</ul><p><a href=\"#speed\">Speed against error</a> \u00b7 "
