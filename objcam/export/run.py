@@ -2,7 +2,7 @@
 
     OUT/envmaps/<target>.exr, .hdr, _mitsuba.exr   the recovered envmaps (standard lat-long convention)
     OUT/meshes/object.{ply,obj,mtl,glb}, support.*, <name>_albedo.png / .exr   surfaces and albedo
-    OUT/images/<target>.exr, .png                    the target photos (linear; tonemapped)
+    OUT/images/<target>.exr, .png, views/<stem>.png  the target photos (linear; tonemapped), the SfM views
     OUT/colmap/cameras.txt, images.txt, points3D.txt the cameras as a COLMAP text model
     OUT/transforms.json                              the cameras, nerfstudio style
     OUT/mitsuba/<target>.xml                         a Mitsuba 3 scene per target (renders the solve's prediction)
@@ -54,12 +54,37 @@ def _albedo(value, scene_folder: Path) -> tuple[tuple | None, np.ndarray | None,
     return None, None, "unknown: grey 0.5 placeholder (the solve estimated it per pixel, not on the mesh)"
 
 
+def _json(path: Path) -> dict:
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return d if isinstance(d, dict) else {}
+
+
+def _fit_scale(xml: Path, prediction: Path, downsample: int, spp: int = 64) -> np.ndarray:
+    """(3,) least-squares factors per channel taking the scene ``xml`` rendered by Mitsuba (pooled f x f) to the
+    solve's prediction over the pixels it predicts."""
+    from objcam.image_io import read_exr
+    from objcam.scene import use_mitsuba
+
+    mi = use_mitsuba()
+    img = np.asarray(mi.render(mi.load_file(str(xml), spp=spp)), np.float64)[..., :3]
+    pred = read_exr(prediction)[..., :3].astype(np.float64)
+    h, w, f = pred.shape[0], pred.shape[1], int(downsample)
+    pooled = img[: h * f, : w * f].reshape(h, f, w, f, 3).mean(axis=(1, 3))
+    used = np.any(pred != 0, axis=2)
+    r, p = pooled[used], pred[used]
+    den = (r * r).sum(axis=0)
+    return np.where(den > 0, (r * p).sum(axis=0) / np.maximum(den, 1e-300), 1.0)
+
+
 def _view_cameras(work: Path) -> dict:
     """sfm's view cameras when the capture was photographed (name -> Camera)."""
     from objcam.camera import Camera
 
     folder = work / "sfm" / "cameras" / "views"
-    return {f"view_{p.stem}": Camera.model_validate_json(p.read_text()) for p in sorted(folder.glob("*.json"))}
+    return {f"views/{p.stem}": Camera.model_validate_json(p.read_text()) for p in sorted(folder.glob("*.json"))}
 
 
 def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> dict:
@@ -130,13 +155,23 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
                                      "mitsuba": f"mitsuba/{t.name}.xml", "max_depth": depth,
                                      "transport_model": tr.model, "downsample": int(tr.downsample),
                                      "prediction": str(sdir / "prediction.exr")}
+        sinfo = _json(sdir / "solve.json")
+        if sinfo.get("albedo") == "unknown" and sinfo.get("scale_ambiguous"):
+            # envmap and albedo are known only up to one scale per channel, and the exported albedo (the texture
+            # stage's estimate) is not the solve's: choose that scale so the exported scene renders the prediction
+            s = _fit_scale(xml, sdir / "prediction.exr", int(tr.downsample))
+            files += write_envmap(out / "envmaps", t.name, env * s, opts.upsample)
+            record["targets"][t.name]["envmap_scale"] = s.tolist()
+            record["warnings"].append(f"{t.name}: envmap and albedo known only up to scale (no pixel of known "
+                                      f"albedo): the exported envmap is the solve's x {np.round(s, 4).tolist()}, "
+                                      "fitted so the Mitsuba scene with the exported albedo renders the prediction")
         if abs(t.camera.fx - t.camera.fy) > 1e-6 * t.camera.fx:
             record["warnings"].append(f"{t.name}: fx != fy; Mitsuba's and Blender's cameras take fx (square pixels)")
     # cameras (targets, and the photogrammetry views when there are any)
     views = _view_cameras(work)
     src_views = work / "ingest" / "views"
     for name, cam in views.items():
-        png = src_views / f"{name[len('view_'):]}.png"
+        png = src_views / f"{name.split('/', 1)[1]}.png"  # ingest's sRGB copy, the size sfm's camera has
         if png.is_file():
             atomic_write_bytes(out / "images" / f"{name}.png", png.read_bytes())
             files.append(out / "images" / f"{name}.png")
