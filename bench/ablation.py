@@ -142,6 +142,7 @@ def adam_objective(cap: Path, ls_rel: float, lr_rel: float) -> tuple[float, floa
     lowest value it recorded on its way (None otherwise)."""
     import numpy as np
 
+    from objcam.envmap import read_latlong
     from objcam.image_io import read_exr
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.solvers.adam import AdamProblem, AdamSettings
@@ -156,7 +157,7 @@ def adam_objective(cap: Path, ls_rel: float, lr_rel: float) -> tuple[float, floa
     total, best = 0.0, None
     for names in groups.values():
         pb = AdamProblem.build(data, names, AdamSettings(ls=ls_rel, lr_ridge=lr_rel))
-        X = np.stack([pb.tr.x_from_envmap(read_exr(w / "solve" / t / "envmap.exr")[..., :3]) for t in names])
+        X = np.stack([pb.tr.x_from_envmap(read_latlong(w / "solve" / t / "envmap.exr")[..., :3]) for t in names])
         alb = w / "solve" / names[0] / "albedo.exr"
         rho = (read_exr(alb)[..., :3].reshape(-1, 3)[pb.pix].astype(np.float64) if alb.is_file()
                else pb.rho_known)

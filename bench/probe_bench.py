@@ -51,8 +51,7 @@ camera = "photos/ball.json"
 
 def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_centre: bool = False,
         plane_albedo: float | None = None) -> dict:
-    from objcam.envmap import EnvGrid, area_downsample
-    from objcam.image_io import read_exr
+    from objcam.envmap import EnvGrid, area_downsample, read_latlong
     from objcam.metrics import brightest_angle_deg, luminance, relative_rmse
     from objcam.pipeline.stage import StageInputs
     from objcam.probe.artifact import read_uint8
@@ -82,7 +81,7 @@ def one(env: str, size: int, ball_px: float, spp: int, seed: int, params, known_
         t_stage = time.perf_counter() - t1
         rec = json.loads((out / "ball" / "probe.json").read_text())
         h = params.env_height
-        est = read_exr(out / "ball" / f"envmap_gt_{h}.exr").astype(np.float64)
+        est = read_latlong(out / "ball" / f"envmap_gt_{h}.exr").astype(np.float64)
         valid = read_uint8(out / "ball" / f"valid_{h}.png") > 127
     if plane_albedo is not None:  # below the horizon the ball sees the plane, not the envmap
         valid[h // 2:] = False

@@ -219,8 +219,10 @@ def main(argv=None) -> int:
     write_section("core", report, CORE_TITLE, args.results)
     data = json.dumps({"transport": a_rows, "solve": rows}, indent=2, default=float)
     (args.out / "results.json").write_text(data)
-    # committed beside results.md: the report's speed-against-error plot reads it (objcam.report.speed)
+    # committed beside results.md, and shipped in the package: the report's speed-against-error plot reads it
+    # (objcam.report.speed.DEFAULT_RESULTS)
     args.results.with_suffix(".json").write_text(data)
+    (Path(__file__).resolve().parents[1] / "objcam" / "assets" / "bench_results.json").write_text(data)
     print(report)
     return 0
 

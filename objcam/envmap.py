@@ -7,11 +7,18 @@ phi = 2*pi*(c+0.5)/W measured from +x towards +y. The texel centre direction is
 
 Every module that maps between directions and texels goes through this file; the conversion to Mitsuba's
 y-up envmap lives in :func:`mitsuba_envmap_to_world` and nowhere else.
+
+Files use a different, standard convention: every lat-long image objcam reads or writes (EXR, HDR or PNG) is the
+equirectangular panorama of z-up worlds (Blender, Poly Haven HDRIs): column u in [0, 1) looks along
+u = 0.5 - atan2(y, x) / (2 pi) (mod 1), so +x is the centre column, +y a quarter of the width from the left, and
+azimuth turns clockwise seen from above as u grows. :func:`to_file` and :func:`from_file` convert between the two
+(and :func:`read_latlong`, :func:`write_latlong`, :func:`write_latlong_png` wrap the I/O); nothing else does.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -167,5 +174,68 @@ def mitsuba_envmap_to_world() -> np.ndarray:
     m[:3, 0] = [0.0, -1.0, 0.0]  # local x -> world -y
     m[:3, 1] = [0.0, 0.0, 1.0]  # local y (Mitsuba's up) -> world +z
     m[:3, 2] = [-1.0, 0.0, 0.0]  # local z -> world -x
+    m[3, 3] = 1.0
+    return m
+
+
+def to_file(env: np.ndarray) -> np.ndarray:
+    """objcam's grid (H, W[, C]) -> the standard z-up equirectangular layout written to files.
+
+    objcam's column c (azimuth phi = 2 pi (c + 0.5) / W from +x towards +y) lands at file u = 0.5 - phi / (2 pi),
+    i.e. file column (W/2 - 1 - c) mod W: the columns reversed, then rolled by half the width. Exact (a column
+    permutation) and its own inverse.
+    """
+    return np.ascontiguousarray(np.roll(np.asarray(env)[:, ::-1], env.shape[1] // 2, axis=1))
+
+
+def from_file(env: np.ndarray) -> np.ndarray:
+    """The standard z-up equirectangular layout of a file (H, W[, C]) -> objcam's grid (the inverse of
+    :func:`to_file`, which is the same permutation)."""
+    return to_file(env)
+
+
+def read_latlong(path: str | Path) -> np.ndarray:
+    """A lat-long EXR (standard convention) as objcam's grid (H, W, C) float32."""
+    from objcam.image_io import read_exr
+
+    return from_file(read_exr(path))
+
+
+def write_latlong(path: str | Path, env: np.ndarray, half: bool = False) -> None:
+    """Write objcam's grid ``env`` (H, W[, C]) as an EXR in the standard convention (atomically)."""
+    from objcam.image_io import write_exr
+
+    write_exr(path, to_file(env), half=half)
+
+
+def write_latlong_png(path: str | Path, display: np.ndarray) -> None:
+    """Write a display image (H, W[, C], values in [0, 1]) of objcam's grid as a PNG in the standard convention."""
+    from objcam.image_io import write_png
+
+    write_png(path, to_file(display))
+
+
+def read_latlong_mask(path: str | Path) -> np.ndarray:
+    """A lat-long mask PNG (standard convention, nonzero > 127 = set) as objcam's grid (H, W) bool."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FileNotFoundError(path)
+    img = img if img.ndim == 2 else img[..., 0]
+    return from_file(img > 127)
+
+
+def standard_mitsuba_to_world() -> np.ndarray:
+    """4x4 ``to_world`` for Mitsuba 3's ``envmap`` emitter holding a lat-long FILE (standard convention) as is.
+
+    Mitsuba looks local direction l up at u = atan2(l.x, -l.z) / (2 pi), v = acos(l.y) / pi. The file's
+    u = 0.5 - atan2(y, x) / (2 pi) needs l = (y, z, x) of the world direction (x, y, z): local x -> world +y,
+    local y -> world +z, local z -> world +x (a cyclic permutation, determinant +1).
+    """
+    m = np.zeros((4, 4))
+    m[:3, 0] = [0.0, 1.0, 0.0]
+    m[:3, 1] = [0.0, 0.0, 1.0]
+    m[:3, 2] = [1.0, 0.0, 0.0]
     m[3, 3] = 1.0
     return m

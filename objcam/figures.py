@@ -22,13 +22,18 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> None:
 def overview_figure(path: str | Path, target: np.ndarray, truth: np.ndarray | None, estimate: np.ndarray,
                     mask: np.ndarray, title: str = "") -> None:
     """Target photo | true envmap | recovered envmap (envmaps share the truth's exposure; texels the solve did
-    not model are dimmed). Arrays: target (h, w, 3), envmaps (H, 2H, 3) linear radiance, mask (H, 2H) bool."""
+    not model are dimmed). Arrays: target (h, w, 3), envmaps (H, 2H, 3) linear radiance, mask (H, 2H) bool, of
+    objcam's grid; drawn in the standard file convention (objcam.envmap.to_file)."""
     import matplotlib
+
+    from objcam.envmap import to_file
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = [("target photo", tonemap(target)[0])]
+    truth = None if truth is None else to_file(truth)
+    estimate, mask = to_file(estimate), to_file(mask)
     ref = None
     if truth is not None:
         t, ref = tonemap(np.where(mask[..., None], truth, 0.0))

@@ -9,15 +9,11 @@ script downloads and unpacks the package itself into a temporary folder.
 
 Blender's equirectangular convention (studiolight.cc ``direction_to_equirect`` and Cycles'
 ``direction_to_equirectangular``, world z up): u = (atan2(d.y, d.x) - pi) / (-2 pi), v = 1 - acos(d.z) / pi, with
-v = 1 at the top row of the file. So the file's row 0 is the zenith (as in objcam), the centre column (u = 0.5)
-looks along +x and u grows clockwise seen from above (towards -y). File column j therefore sits at azimuth
-phi = pi - 2 pi (j + 0.5) / W, and objcam's column c (phi = 2 pi (c + 0.5) / W) holds Blender's column
-(W/2 - 1 - c) mod W: ``np.roll(blender[:, ::-1], W // 2, axis=1)`` (see :func:`blender_to_objcam`). Seen as a
-picture, objcam's map is the mirror image of the photograph because objcam's azimuth turns anticlockwise; the
-directions are what matter and they are exact (a whole-texel permutation, no resampling).
-
-Each map is then area-averaged (objcam.envmap.area_downsample, solid-angle exact) to 128 x 256 and written as a
-float32 zip EXR (pixels are reproducible bit for bit; OpenImageIO stamps a capture date in the header). Bundled:
+v = 1 at the top row of the file: exactly the standard lat-long file convention objcam reads and writes
+(data_layout.md; row 0 the zenith, the centre column looks along +x, u grows clockwise seen from above). The
+maps are read onto objcam's internal grid (objcam.envmap.read_latlong: a whole-texel column permutation, no
+resampling), area-averaged there (objcam.envmap.area_downsample, solid-angle exact) to 128 x 256 and written back
+in the standard convention (objcam.envmap.write_latlong) as a float32 zip EXR (pixels are reproducible bit for bit; OpenImageIO stamps a capture date in the header). Bundled:
 forest, courtyard, sunset, city, sunrise; the package also has interior, night and studio (not shipped).
 
 Bunny: the Stanford bunny (Stanford 3D Scanning Repository) as shipped with pymeshlab's test data
@@ -40,19 +36,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from objcam.envmap import area_downsample  # noqa: E402
-from objcam.image_io import read_exr, write_exr  # noqa: E402
+from objcam.envmap import area_downsample, read_latlong, write_latlong  # noqa: E402
 
 ASSETS = ROOT / "objcam" / "assets"
 ENVMAPS = ("forest", "courtyard", "sunset", "city", "sunrise")  # also there: interior, night, studio
 HEIGHT = 128
 BUNNY_FACES = 8000
-
-
-def blender_to_objcam(env: np.ndarray) -> np.ndarray:
-    """A Blender world equirect (file row 0 = zenith, centre column = +x, u clockwise) in objcam's convention."""
-    w = env.shape[1]
-    return np.roll(env[:, ::-1], w // 2, axis=1)
 
 
 def fetch_blender_data(tmp: Path) -> Path:
@@ -66,10 +55,10 @@ def make_envmaps(blender_root: Path) -> None:
     src = blender_root / "usr/share/blender/datafiles/studiolights/world"
     (ASSETS / "envmaps").mkdir(parents=True, exist_ok=True)
     for name in ENVMAPS:
-        env = read_exr(src / f"{name}.exr")[..., :3].astype(np.float64)
+        env = read_latlong(src / f"{name}.exr")[..., :3].astype(np.float64)
         env = np.nan_to_num(np.maximum(env, 0.0))
-        small = area_downsample(blender_to_objcam(env), HEIGHT).astype(np.float32)
-        write_exr(ASSETS / "envmaps" / f"{name}.exr", small)
+        small = area_downsample(env, HEIGHT).astype(np.float32)
+        write_latlong(ASSETS / "envmaps" / f"{name}.exr", small)
         (ASSETS / "envmaps" / f"{name}.exr").chmod(0o644)  # atomic writes create 0600 files
         print(f"{name}: {env.shape} -> {small.shape}, mean {small.mean(axis=(0, 1))}")
 

@@ -79,3 +79,64 @@ def test_photographed_targets_are_compared_up_to_the_camera_gain(run, tmp_path):
     assert "scale_channels" not in m and m["scale"] == pytest.approx(m["best_scale"])
     assert not 0.5 < m["scale"] < 2.0  # the camera's gain, which the fit took out
     assert m["ssim"] > 0.3, m
+
+
+def test_report_tells_the_whole_capture(run, tmp_path):
+    """The photographed capture's report in headless Chromium at 1280 px: a section per photo stage before the
+    targets, the envmap beside the truth and the chrome ball with a working exposure slider, the parameters and
+    the files; nothing wider than the page, no overlapping labels, no error; a screenshot of every section."""
+    from tests.test_report_browser import layout, measure
+
+    _, work = run
+    page = work / "report" / "index.html"
+    m = measure(page)
+    assert not m["errors"], m["errors"]
+    assert all(i["complete"] and i["w"] > 0 for i in m["images"])
+    shots = tmp_path / "shots"
+    info = layout(page, 1280, shots)
+    ids = [s for s, _ in info["sections"]]
+    want = ("ingest", "sfm", "geometry", "texture", "probe", "target-t0", "speed", "stages", "metrics", "params",
+            "files")
+    assert [s for s in ids if s in want] == list(want), ids
+    assert info["scrollWidth"] <= 1280 and not info["wide"] and not info["clashes"], info
+    # estimate, truth and chrome ball, drawn, and brighter at +2 EV
+    assert len(info["before"]) == 3 and min(info["before"]) > 0, info["before"]
+    assert all(a > b for a, b in zip(info["after"], info["before"])), (info["before"], info["after"])
+    assert (info["output"], info["output_after"]) == ("0 EV", "+2 EV")
+    text = page.read_text(encoding="utf-8")
+    for needle in ("objcam 0", "Parameters used", "../solve/t0/envmap.exr", "Quality:", "camera positions"):
+        assert needle in text, needle
+    for sid in ids:
+        assert (shots / f"{sid}.png").stat().st_size > 5_000, sid
+    print(f"\nscreenshots of the report's sections: {shots}")
+
+
+def test_export_of_a_photographed_capture(run, tmp_path):
+    """Unknown albedo, no pixel of known albedo: envmap and albedo are known up to a scale per channel, the export
+    fits it so its Mitsuba scene (the texture stage's albedo) renders the prediction (measured 10% relative L2:
+    the solve's per-pixel albedo is not the baked texture); every SfM view travels with its camera."""
+    import numpy as np
+    import pycolmap
+
+    from objcam.image_io import read_exr
+    from objcam.pipeline.cli import main
+    from objcam.scene import use_mitsuba
+
+    cap, work = run
+    out = tmp_path / "export"
+    assert main(["export", str(cap), str(out), "--work", str(work)]) == 0
+    rec = json.loads((out / "export.json").read_text())
+    s = np.asarray(rec["targets"]["t0"]["envmap_scale"])
+    env = read_exr(work / "solve" / "t0" / "envmap.exr")[..., :3]
+    assert np.allclose(read_exr(out / "envmaps" / "t0.exr")[..., :3], env * s.astype(np.float32), rtol=1e-5)
+    mi = use_mitsuba()
+    img = np.asarray(mi.render(mi.load_file(str(out / "mitsuba" / "t0.xml"), spp=256)), np.float64)[..., :3]
+    pred = read_exr(work / "solve" / "t0" / "prediction.exr")[..., :3].astype(np.float64)
+    h, w, f = pred.shape[0], pred.shape[1], rec["targets"]["t0"]["downsample"]
+    pooled = img[: h * f, : w * f].reshape(h, f, w, f, 3).mean(axis=(1, 3))
+    used = np.any(pred != 0, axis=2)
+    assert np.linalg.norm(pooled[used] - pred[used]) / np.linalg.norm(pred[used]) < 0.2
+    model = pycolmap.Reconstruction(str(out / "colmap"))
+    views = sorted((work / "sfm" / "cameras" / "views").glob("*.json"))
+    assert len(model.images) == len(views) + 1 and all((out / "images" / "views" / f"{v.stem}.png").is_file()
+                                                       for v in views)

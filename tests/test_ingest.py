@@ -253,3 +253,23 @@ def test_undistort_restores_the_pinhole_image():
     err = np.abs(out - pin)[inner & valid]
     assert np.median(err) < 0.01 and err.max() < 0.08
     assert valid[h // 2, w // 2] and valid[inner].mean() > 0.99
+
+
+def test_one_exposure_time_for_a_folder_without_exif(tmp_path):
+    """[camera] exposure_time: every photo without an EXIF exposure time takes it; EXIF and exposure_times win,
+    and an EXR (already linear) never takes it."""
+    from objcam.capture.photos import time_override
+    from objcam.image_io import write_exr
+    from objcam.schemas.capture import CameraFacts
+
+    bare = write_jpeg(tmp_path / "a.jpg", np.full((8, 8, 3), 100, np.uint8))
+    shot = write_jpeg(tmp_path / "b.jpg", np.full((8, 8, 3), 100, np.uint8), {"ExposureTime": 0.004})
+    write_exr(tmp_path / "c.exr", np.ones((4, 4, 3), np.float32))
+    facts = CameraFacts(exposure_time=0.02, exposure_times={"c.jpg": 0.5})
+    assert time_override(bare, facts.exposure_times, tmp_path, facts.exposure_time) == 0.02
+    assert time_override(shot, facts.exposure_times, tmp_path, facts.exposure_time) is None  # EXIF's 1/250
+    assert exposure_time(shot, time_override(shot, {}, tmp_path, 0.02)) == pytest.approx(0.004)
+    assert time_override(tmp_path / "c.exr", {}, tmp_path, 0.02) is None
+    assert time_override(bare, {"a.jpg": 0.1}, tmp_path, 0.02) == 0.1
+    with pytest.raises(ValueError):
+        CameraFacts(exposure_time=0)

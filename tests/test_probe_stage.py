@@ -20,7 +20,7 @@ from pydantic import ValidationError
 
 from objcam.envmap import EnvGrid, area_downsample
 from objcam.errors import InputError
-from objcam.image_io import read_exr
+from objcam.envmap import read_latlong
 from objcam.metrics import brightest_angle_deg, brightest_direction, luminance, relative_rmse
 from objcam.pipeline.stage import StageInputs
 from objcam.probe.artifact import read_uint8
@@ -123,10 +123,10 @@ def test_stage_recovers_the_envmap(courtyard, courtyard_out):
     # ingest's merge.json frames (names in the probe's folder) are resolved for error messages
     assert len(rec["merge"]["frames"]) == len(b.times) and all("photos/ball/" in f for f in rec["merge"]["frames"])
     assert rec["merge"]["times"] == sorted(b.times)
-    fine = read_exr(folder / "envmap_gt.exr")
+    fine = read_latlong(folder / "envmap_gt.exr")
     assert fine.shape == (512, 1024, 3)
     assert read_uint8(folder / "flags.png").shape == (512, 1024)
-    est = read_exr(folder / "envmap_gt_32.exr").astype(np.float64)
+    est = read_latlong(folder / "envmap_gt_32.exr").astype(np.float64)
     valid = read_uint8(folder / "valid_32.png") > 127
     assert est.shape == (32, 64, 3) and valid.shape == (32, 64)
     w = EnvGrid(32).solid_angles()
@@ -152,7 +152,7 @@ def test_known_centre_is_used_and_checked(courtyard, courtyard_out):
     assert rec["fit"]["residual_px"] < 1.0 and abs(rec["fit"]["edge_bias_px"]) < 1.0
     # ... and checked: a fit at its height lands next to it (no warning)
     assert rec["fit"]["fitted_offset_mm"] < 0.3 and not rec["warnings"]  # measured 0.05 mm
-    est = read_exr(courtyard_out / "known" / "envmap_gt_32.exr")
+    est = read_latlong(courtyard_out / "known" / "envmap_gt_32.exr")
     valid = read_uint8(courtyard_out / "known" / "valid_32.png") > 127
     assert relative_rmse(est, _truth32(r), valid) < 0.15
 
@@ -186,7 +186,7 @@ def test_probe_truth(courtyard, courtyard_out):
     r, _ = courtyard
     env, valid = probe_truth(courtyard_out, "t0", 32)
     assert env.shape == (32, 64, 3) and valid.dtype == bool
-    assert np.array_equal(env, read_exr(courtyard_out / "ball" / "envmap_gt_32.exr"))
+    assert np.array_equal(env, read_latlong(courtyard_out / "ball" / "envmap_gt_32.exr"))
     # another resolution: area-averaged from the fine map with the same validity rule
     env16, valid16 = probe_truth(courtyard_out, "t0", 16)
     truth16 = area_downsample(r.envmap.astype(np.float64), 16)
@@ -253,7 +253,7 @@ def test_bracket_exposure(tmp_path, courtyard):
     warn = [w for w in rec["warnings"] if "saturates nowhere" in w]
     assert len(warn) == 1 and dim.merge.paths[-1].name in warn[0] and "add longer exposures" in warn[0]
     # still a probe, a noisier one: measured 0.19 against 0.09 for the well exposed bracket
-    est = read_exr(out / "ball" / "envmap_gt_32.exr")
+    est = read_latlong(out / "ball" / "envmap_gt_32.exr")
     assert relative_rmse(est, _truth32(r), read_uint8(out / "ball" / "valid_32.png") > 127) < 0.3
     # the well exposed bracket of the other tests has no such warning
     assert dim_warning(b.merge, ball_mask(r.camera, r.centre, R)) is None

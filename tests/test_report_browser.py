@@ -169,6 +169,60 @@ def measure(page: Path, exe: str | None = None) -> dict:
             "title": info["title"]}
 
 
+LAYOUT = """JSON.stringify((function () {
+  function box(e) { var r = e.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom]; }
+  function overlaps(a, b) { return a[0] < b[2] - 0.5 && b[0] < a[2] - 0.5 && a[1] < b[3] - 0.5 && b[1] < a[3] - 0.5; }
+  var clashes = [];
+  document.querySelectorAll('.envaxis, .envbox').forEach(function (g) {
+    var labels = Array.from(g.querySelectorAll(':scope > span')).map(function (s) { return [s.textContent, box(s)]; });
+    for (var i = 0; i < labels.length; i++) for (var j = i + 1; j < labels.length; j++)
+      if (overlaps(labels[i][1], labels[j][1])) clashes.push(labels[i][0] + ' / ' + labels[j][0]);
+  });
+  var wide = Array.from(document.querySelectorAll('.table-wrap, figure, section')).filter(function (e) {
+    return e.scrollWidth > e.clientWidth + 1; }).map(function (e) { return e.className || e.id || e.tagName; });
+  function level(c) { var d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data, s = 0;
+    for (var i = 0; i < d.length; i += 4) s += d[i] + d[i + 1] + d[i + 2]; return s / (d.length / 4); }
+  var canvases = Array.from(document.querySelectorAll('canvas.envmap'));
+  var before = canvases.map(level);
+  var slider = document.querySelector('input.exposure');
+  var out = slider ? slider.parentNode.querySelector('output').textContent : null;
+  if (slider) { slider.value = 2; slider.dispatchEvent(new Event('input')); }
+  var after = canvases.map(level);
+  return {scrollWidth: document.documentElement.scrollWidth, sections: Array.from(document.querySelectorAll(
+    'section[id]')).map(function (s) { return [s.id, Math.round(s.getBoundingClientRect().top + scrollY)]; }),
+    clashes: clashes, wide: wide, before: before, after: after, output: out,
+    output_after: slider ? slider.parentNode.querySelector('output').textContent : null};
+})())"""
+
+
+def layout(page: Path, width: int = 1280, shots: Path | None = None, exe: str | None = None) -> dict:
+    """Open ``page`` at ``width`` CSS pixels: the document's scroll width, each section's id and top, labels
+    that overlap, elements wider than their box, the envmap canvases' mean level before and after moving the
+    first exposure slider to +2 EV; with ``shots``, a screenshot of every section (shots/<id>.png)."""
+    import base64
+
+    b = Browser(exe or find_browser())
+    try:
+        target = b.call("Target.createTarget", {"url": "about:blank"})["targetId"]
+        s = b.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        b.call("Page.enable", session=s)
+        b.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": 900, "deviceScaleFactor": 1,
+                                                      "mobile": False}, session=s)
+        b.call("Page.navigate", {"url": Path(page).resolve().as_uri()}, session=s)
+        b.wait_event("Page.loadEventFired")
+        info = json.loads(b.call("Runtime.evaluate", {"expression": LAYOUT, "returnByValue": True},
+                                 session=s)["result"]["value"])
+        if shots is not None:
+            shots.mkdir(parents=True, exist_ok=True)
+            for sid, top in info["sections"]:
+                shot = b.call("Page.captureScreenshot", {"format": "png", "captureBeyondViewport": True, "clip": {
+                    "x": 0, "y": top, "width": width, "height": 900, "scale": 0.6}}, session=s)
+                (shots / f"{sid}.png").write_bytes(base64.b64decode(shot["data"]))
+    finally:
+        b.close()
+    return info
+
+
 def test_report_page_in_headless_chromium(capture):  # noqa: F811
     page = capture / "objcam" / "report" / "index.html"
     exe = find_browser()
@@ -183,6 +237,9 @@ def test_report_page_in_headless_chromium(capture):  # noqa: F811
     assert not m["errors"], m["errors"]
     assert 0 < m["load_ms"] < LOAD_BUDGET_MS
     assert m["bytes"] < SIZE_BUDGET
+    info = layout(page, 1280, exe=exe)  # nothing wider than a 1280 px window, no overlapping labels
+    assert info["scrollWidth"] <= 1280 and not info["wide"] and not info["clashes"], info
+    assert info["before"] and min(info["before"]) > 0  # the envmap canvases are drawn
 
 
 def test_a_broken_page_is_caught(tmp_path):

@@ -59,7 +59,7 @@ def test_adam_objective_is_the_exact_solvers_objective(capture):
     minimises at the same relative weights, and the exact minimiser scores below Adam's result on it."""
     from objcam import solvers
     from objcam.envmap import EnvGrid
-    from objcam.image_io import read_exr
+    from objcam.envmap import read_latlong
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.solvers.adam import AdamProblem, AdamSettings
     from objcam.stages.solve import load_targets
@@ -82,7 +82,7 @@ def test_adam_objective_is_the_exact_solvers_objective(capture):
     f_gram = float(np.sum(x_opt * (Q @ x_opt)) - 2 * np.sum(B * x_opt) + np.sum(Y * Y))
     f_opt = pb.objective(x_opt[None], pb.rho_known)
     assert f_opt == pytest.approx(f_gram, rel=1e-6)
-    x_adam = tr.x_from_envmap(read_exr(w / "solve" / "t0" / "envmap.exr")[..., :3]).astype(np.float64)
+    x_adam = tr.x_from_envmap(read_latlong(w / "solve" / "t0" / "envmap.exr")[..., :3]).astype(np.float64)
     f_adam = pb.objective(x_adam[None], pb.rho_known)
     # the exact minimiser is optimal for this function: below Adam's 30 steps and below nearby points
     assert f_opt < f_adam

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from objcam.envmap import rotate_z
+from objcam.envmap import read_latlong, rotate_z
 from objcam.image_io import read_exr, write_exr
 from objcam.schemas.capture import CaptureManifest, TextureAlbedo
 from objcam.scene import load_mesh
@@ -54,7 +54,7 @@ def test_tiny_capture(tmp_path):
     for name, rot in (("cam0_rot0", 0.0), ("cam0_rot30", 30.0)):
         rel = truth["envmaps"][name]
         assert rel == f"truth/{name}/envmap.exr"
-        assert np.allclose(read_exr(out / rel), rotate_z(src.astype(np.float64), rot), rtol=1e-5, atol=1e-6)
+        assert np.allclose(read_latlong(out / rel), rotate_z(src.astype(np.float64), rot), rtol=1e-5, atol=1e-6)
         assert (out / truth["targets"][name]["clean_image"]).is_file()
     tex = read_exr(out / truth["albedo"]["support"]["texture"])
     assert tex.shape == (64, 64, 3) and np.array_equal(tex, read_exr(out / "albedo_support.exr"))

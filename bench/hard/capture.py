@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.hard.design import NOISES, Case, Geometry
-from bench.hard.lighting import make_envmap
+from bench.hard.lighting import file_columns, make_envmap
 from bench.hard.objects import make_object, write_ply
 from bench.hard.scene import look_at_camera, render
 
@@ -87,7 +87,7 @@ def write_capture(root: Path, geo: Geometry, group: list[Case], renders: dict[st
         r = renders[case.name]
         env_rel = f"truth/{case.name}/envmap.exr"
         (root / "truth" / case.name).mkdir(parents=True, exist_ok=True)
-        write_exr(root / env_rel, r["envmap"])
+        write_exr(root / env_rel, file_columns(r["envmap"]))  # the standard file convention
         write_exr(root / "truth" / case.name / "clean.exr", r["image"])
         for noise in NOISES:
             name = case.target(noise)

@@ -1,6 +1,7 @@
 """Procedural lighting for the hard-case suite: lat-long envmaps (H, 2H, 3) in the convention of data_layout.md
 (row 0 the zenith, azimuth from +x towards +y, texel centre (cos phi sin theta, sin phi sin theta, cos theta)),
-written here from that text alone, not from objcam's envmap module.
+written here from that text alone, not from objcam's envmap module. Files (the bundled HDRIs read, truth/ written)
+are in data_layout.md's standard file convention: :func:`file_columns` converts, from the formula there.
 
 Every family is a function of an azimuth rotation (degrees, anticlockwise about +z seen from above) so each
 rotation is drawn exactly, not resampled; the bundled HDRIs are rotated by whole columns of the 256 x 512 grid.
@@ -79,10 +80,16 @@ def _sky(h: int, zenith, horizon, ground) -> np.ndarray:
     return np.where(theta[..., None] < np.pi / 2, sky, np.asarray(ground, dtype=np.float64))
 
 
+def file_columns(env: np.ndarray) -> np.ndarray:
+    """Between the grid above and a standard lat-long file (data_layout.md: file u = 0.5 - atan2(y, x) / (2 pi),
+    so grid column c is file column (W/2 - 1 - c) mod W); the permutation is its own inverse."""
+    return np.ascontiguousarray(np.roll(env[:, ::-1], env.shape[1] // 2, axis=1))
+
+
 def _hdri(name: str, rotation_deg: float, h: int) -> tuple[np.ndarray, float]:
     from objcam.image_io import read_exr
 
-    env = read_exr(ASSETS / f"{name}.exr")[..., :3].astype(np.float64)
+    env = file_columns(read_exr(ASSETS / f"{name}.exr")[..., :3].astype(np.float64))
     f = h // env.shape[0]
     env = np.repeat(np.repeat(env, f, axis=0), f, axis=1)  # box texels: exact
     k = int(round(rotation_deg / 360.0 * env.shape[1]))

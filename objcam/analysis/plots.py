@@ -93,19 +93,23 @@ def plot_spectrum(sv: np.ndarray, path: str | Path, *, tol: float = DEFAULT_RANK
 
 def plot_envmap_map(values: np.ndarray, path: str | Path, *, title: str, units: str | None = None,
                     log: bool = False, cmap: str = "viridis", vmin=None, vmax=None) -> Path:
-    """A per-texel map (H, 2H) (e.g. :func:`objcam.analysis.to_grid` of :func:`texel_uncertainty`) on lat-long
-    axes: azimuth 0..360 deg from +x towards +y left to right, polar angle 0 (zenith) .. 180 deg top to
-    bottom, as in :mod:`objcam.envmap`. NaN texels (not kept) grey."""
+    """A per-texel map (H, 2H) of objcam's grid (e.g. :func:`objcam.analysis.to_grid` of
+    :func:`texel_uncertainty`) drawn in the standard file convention (objcam.envmap.to_file): -x at both edges,
+    +y a quarter from the left, +x at the centre, -y three quarters; polar angle 0 (zenith) .. 180 deg top to
+    bottom. NaN texels (not kept) grey."""
+    from objcam.envmap import to_file
+
     v = np.asarray(values, dtype=np.float64)
     if v.ndim != 2:
         raise ValueError(f"expected an (H, W) map, got {v.shape}")
+    v = to_file(v)
     fig = _figure((7.0, 3.9))
     ax = fig.add_subplot()
     im = ax.imshow(np.ma.masked_invalid(v), cmap=_cmap(cmap), norm=_norm(v, log, False, vmin, vmax),
                    extent=(0.0, 360.0, 180.0, 0.0), aspect="auto", interpolation="nearest")
-    ax.set_xlabel("azimuth phi [deg] (from +x towards +y)")
+    ax.set_xlabel("direction (standard lat-long: u = 0.5 - atan2(y, x) / 360 deg)")
     ax.set_ylabel("polar angle theta [deg] (0 = zenith)")
-    ax.set_xticks(np.arange(0, 361, 60))
+    ax.set_xticks(np.arange(0, 361, 90), ["-x", "+y", "+x", "-y", "-x"])
     ax.set_yticks(np.arange(0, 181, 30))
     ax.set_title(title)
     cb = fig.colorbar(im, ax=ax)

@@ -24,7 +24,8 @@ from pathlib import Path
 
 from objcam.errors import InputError
 
-MISSING_EXPOSURE_FIX = "shoot with EXIF on, or give exposure times in capture.toml"
+MISSING_EXPOSURE_FIX = ("shoot with EXIF on, or give [camera] exposure_time = SECONDS in capture.toml (every photo "
+                        "without EXIF; exposure_times = {\"NAME\" = SECONDS} per file)")
 
 
 @dataclass(frozen=True)

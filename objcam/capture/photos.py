@@ -70,8 +70,11 @@ class Photo:
     extra: dict = field(default_factory=dict)
 
 
-def time_override(path: Path, overrides: Mapping[str, float], capture: Path | None = None) -> float | None:
-    """The exposure time capture.toml gives for ``path`` (keyed by file name or capture-relative path)."""
+def time_override(path: Path, overrides: Mapping[str, float], capture: Path | None = None,
+                  default: float | None = None) -> float | None:
+    """The exposure time capture.toml gives for ``path``: ``exposure_times`` keyed by file name or capture-relative
+    path (overrides EXIF), else ``default`` (``exposure_time``: every photo without an EXIF exposure time, e.g. a
+    folder of exported JPEGs; an EXR is linear as it is and never takes it), else None (EXIF)."""
     if path.name in overrides:
         return float(overrides[path.name])
     if capture is not None:
@@ -81,6 +84,11 @@ def time_override(path: Path, overrides: Mapping[str, float], capture: Path | No
             rel = None
         if rel is not None and rel in overrides:
             return float(overrides[rel])
+    if default is not None and kind(path) != "exr":
+        from objcam.capture.exif import read_exif
+
+        if read_exif(path).exposure_time is None:
+            return float(default)
     return None
 
 

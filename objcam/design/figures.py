@@ -13,6 +13,7 @@ import numpy as np
 from objcam.analysis import plot_envmap_map, plot_image_map
 from objcam.analysis.plots import BAD_COLOUR, DPI
 from objcam.design.scoring import Scores
+from objcam.envmap import to_file
 from objcam.image_io import atomic_write_bytes
 
 UNC_UNITS = "radiance per unit pixel noise"
@@ -62,16 +63,17 @@ def comparison_figure(path: Path, names: list[str], scores: list[Scores], unc_li
         ax.set_xticks([])
         ax.set_yticks([])
         ax = fig.add_subplot(gs[i, 1])
-        upper = sc.uncertainty[: sc.uncertainty.shape[0] // 2]  # the lower half lies below the plane
+        # the lower half lies below the plane; drawn in the standard lat-long file convention
+        upper = to_file(sc.uncertainty)[: sc.uncertainty.shape[0] // 2]
         im_u = ax.imshow(np.ma.masked_invalid(upper), cmap=cm_u, norm=unc_norm, aspect="auto",
                          extent=(0.0, 360.0, 0.0, 90.0), interpolation="nearest")
         for elev, style in ((zenith_deg, ":"), (horizon_deg, "--")):
             ax.axhline(elev, color="white", lw=0.8, ls=style)
-        ax.set_xticks(np.arange(0, 361, 60))
+        ax.set_xticks(np.arange(0, 361, 90), ["-x", "+y", "+x", "-y", "-x"])
         ax.set_yticks(np.arange(0, 91, 15))
         ax.set_ylabel("elevation [deg]", fontsize=8)
         if i == n - 1:
-            ax.set_xlabel("azimuth [deg] (from +x towards +y)", fontsize=8)
+            ax.set_xlabel("direction (standard lat-long: u = 0.5 - atan2(y, x) / 360 deg)", fontsize=8)
         ax.set_title(f"{name}: uncertainty, upper sky mean {k['uncertainty_mean']:.3g}, worst "
                      f"{k['uncertainty_worst']:.3g} (spread {k['spread']:.2f}); zenith {k['uncertainty_zenith']:.3g}"
                      f", horizon {k['uncertainty_horizon']:.3g}", fontsize=9)

@@ -38,6 +38,7 @@ def run_design(out: str | Path, params: DesignParams | None = None,
     from objcam.design.page import write_page
     from objcam.design.scene import build_transport, design_camera, reference_scale
     from objcam.design.scoring import score
+    from objcam.envmap import write_latlong
     from objcam.image_io import atomic_write_text, write_exr
 
     p = params or DesignParams()
@@ -71,7 +72,7 @@ def run_design(out: str | Path, params: DesignParams | None = None,
     unc_lim = shared_limits([s.uncertainty for s in scores.values()])
     lev_lim = shared_limits([s.leverage for s in scores.values()])
     for name, sc in scores.items():
-        write_exr(out / name / "uncertainty.exr", np.nan_to_num(sc.uncertainty).astype(np.float32))
+        write_latlong(out / name / "uncertainty.exr", np.nan_to_num(sc.uncertainty).astype(np.float32))
         write_exr(out / name / "leverage.exr", np.nan_to_num(sc.leverage).astype(np.float32))
         write_object_pngs(out / name, name, sc, unc_lim, lev_lim)
     comparison_figure(out / "comparison.png", list(scores), list(scores.values()), unc_lim, lev_lim,

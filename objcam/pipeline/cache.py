@@ -42,13 +42,16 @@ def file_digest(path: Path, memo: dict[str, list] | None = None) -> str:
 
 def manifest_digest(path: Path) -> str:
     """Hash of capture.toml's parsed content, so a comment or a reformatting reruns nothing (its bytes' hash
-    when it does not parse: the scene stage then reports why)."""
+    when it does not parse: the scene stage then reports why). The ``[params.<stage>]`` tables are left out: they
+    reach each stage's key through its params, so a solve setting reruns solve, not the stages that read the
+    capture's inputs."""
     import tomllib
 
     try:
         data = tomllib.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return file_digest(path)
+    data.pop("params", None)
     return "toml:" + hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
 

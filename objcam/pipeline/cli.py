@@ -6,6 +6,8 @@
     objcam synth OUT [--object bunny] [--envmap forest] ...
     objcam evaluate CAPTURE               metrics against truth/ (synthetic captures)
     objcam design OUT [--mesh PATH] ...   compare occluders (bunny, sphere, coded mask, meshes); no capture
+    objcam params [STAGE]                 every stage parameter: type, default, description
+    objcam export CAPTURE OUT             envmaps (EXR, HDR), meshes (PLY, OBJ, GLB), cameras, Mitsuba/Blender scenes
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="append", default=[], metavar="STAGE",
                    help="rerun this stage and everything downstream even if cached (repeatable)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.PARAM=VALUE",
-                   help="override a stage parameter, e.g. --set transport.model=direct (repeatable)")
+                   help="override a stage parameter for this run, e.g. --set transport.model=direct (repeatable; "
+                   "`objcam params` lists them; [params.STAGE] in capture.toml keeps a setting)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.add_argument("--allow-outside-inputs", action="store_true",
                    help="read inputs that lie outside the capture folder (refused by default)")
@@ -47,12 +50,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run the pipeline (cached stages are skipped)")
     _pipeline_args(p)
     p.add_argument("--until", default=None, metavar="STAGE", help="stop after this stage")
+    from objcam.pipeline.params import stage_epilog
+
     for name in graph.STAGES:
         if name == "evaluate":
             continue
-        p = sub.add_parser(name, help=f"run stage '{name}' (and any stage it needs)")
+        p = sub.add_parser(name, help=f"run stage '{name}' (and any stage it needs)", epilog=stage_epilog(name),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         _pipeline_args(p)
-    p = sub.add_parser("evaluate", help="metrics against the capture's truth/ (runs what is needed first)")
+    p = sub.add_parser("evaluate", help="metrics against the capture's truth/ (runs what is needed first)",
+                       epilog=stage_epilog("evaluate"), formatter_class=argparse.RawDescriptionHelpFormatter)
     _pipeline_args(p)
     p = sub.add_parser("status", help="which stages are done, stale or missing")
     p.add_argument("capture", type=Path)
@@ -67,6 +74,14 @@ def build_parser() -> argparse.ArgumentParser:
     from objcam.design.cli import add_design_args
 
     add_design_args(p)
+    p = sub.add_parser("params", help="list every stage parameter (type, default, description)")
+    from objcam.pipeline.params_cli import add_params_args
+
+    add_params_args(p)
+    p = sub.add_parser("export", help="envmaps, meshes, cameras, Mitsuba and Blender scenes for other tools")
+    from objcam.pipeline.export_cli import add_export_args
+
+    add_export_args(p)
     return ap
 
 
@@ -100,7 +115,23 @@ def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
     reports = pipe.run(until=until, force=args.force, only=only, on_stage=live)
     _print_reports(console, reports, f"objcam: {args.capture}")
     console.print(f"artifacts: {pipe.work}")
+    for line in _result_paths(pipe, {r.stage for r in reports if r.status in ("ran", "cached")}):
+        console.print(line)
     return 0
+
+
+def _result_paths(pipe, done: set[str]) -> list[str]:
+    """Where the results of this run are: each target's envmap (EXR, standard lat-long) and the report."""
+    lines = []
+    if "solve" in done:
+        for env in sorted(pipe.stage_dir("solve").glob("*/envmap.exr")):
+            lines.append(f"envmap {env.parent.name}: {env}")
+    page = pipe.stage_dir("report") / "index.html"
+    if "report" in done and page.is_file():
+        lines.append(f"report: {page}")
+    if lines:
+        lines.append(f"for Blender, Mitsuba, viewers: objcam export {escape(str(pipe.capture))} OUT")
+    return lines
 
 
 def _status(args) -> int:
@@ -116,7 +147,10 @@ def _status(args) -> int:
     for row in pipe.status():
         style = {"done": "green", "stale": "yellow", "damaged": "yellow", "missing": "red", "n/a": "dim"}[row["state"]]
         secs = f"{row['seconds']:.2f} s" if row["seconds"] is not None else ""
-        t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], escape(row["summary"]))
+        summary = row["summary"]
+        if row.get("changed"):  # compared against capture.toml's [params] (and this call's --set)
+            summary = f"params differ from the last run: {'; '.join(row['changed'])}"
+        t.add_row(row["stage"], f"[{style}]{row['state']}[/]", secs, row["key"], escape(summary))
     _console().print(t)
     return 0
 
@@ -148,6 +182,14 @@ def main(argv: list[str] | None = None) -> int:
             from objcam.design.cli import run_design_cmd
 
             return run_design_cmd(args)
+        if args.command == "export":
+            from objcam.pipeline.export_cli import run_export
+
+            return run_export(args)
+        if args.command == "params":
+            from objcam.pipeline.params_cli import run_params
+
+            return run_params(args)
         return _run(args, only=[args.command])
     except ObjcamError as e:
         print(f"objcam: error: {e}", file=sys.stderr)

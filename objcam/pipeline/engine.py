@@ -29,6 +29,7 @@ from objcam.pipeline import graph
 from objcam.pipeline import integrity, workdir
 from objcam.pipeline.cache import code_digest, file_digest, manifest_digest, stage_key
 from objcam.pipeline.inputs import check_input
+from objcam.pipeline.params import capture_params, changes, combined, make_params, suggestion
 from objcam.pipeline.stage import StageInputs
 from objcam.schemas.stage_record import StageRecord
 
@@ -50,7 +51,8 @@ def parse_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
         lhs, value = item.split("=", 1)
         stage, param = lhs.split(".", 1)
         if stage not in graph.STAGES:
-            raise ObjcamError(f"--set {item!r}: no stage {stage!r} (stages: {', '.join(graph.STAGES)})")
+            raise ObjcamError(f"--set {item!r}: no stage {stage!r}{suggestion(stage, list(graph.STAGES))} "
+                              f"(stages: {', '.join(graph.STAGES)})")
         try:
             parsed: Any = json.loads(value)
         except json.JSONDecodeError:
@@ -78,16 +80,6 @@ def _non_finite(value: Any) -> bool:
     if isinstance(value, dict):
         return any(_non_finite(v) for v in value.values())
     return False
-
-
-def make_params(name: str, overrides: dict[str, Any] | None) -> BaseModel:
-    Params = graph.stage_module(name).Params
-    try:
-        return Params(**(overrides or {}))
-    except ValidationError as e:
-        msg = "; ".join(f"{name}.{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
-        fields = ", ".join(Params.model_fields)
-        raise ObjcamError(f"bad --set for stage {name}: {msg} (params: {fields})") from None
 
 
 @dataclass
@@ -144,7 +136,10 @@ class Pipeline:
         self.work = workdir.absolute(work) if work else default_work_dir(self.capture)
         self.explicit_work = work is not None
         self.allow_outside_inputs = allow_outside_inputs
-        self.overrides = overrides or {}
+        # capture.toml's [params.<stage>] settings, with the one-run --set overrides on top
+        self.cli_overrides = overrides or {}
+        self.kept = capture_params(self.capture)
+        self.overrides = combined(self.kept, self.cli_overrides)
         self.quiet = quiet
         self._memo: dict[str, list] = {}
         self._keys: dict[str, str] = {}
@@ -155,7 +150,14 @@ class Pipeline:
         return self.work / name
 
     def params(self, name: str) -> BaseModel:
-        return make_params(name, self.overrides.get(name))
+        toml = self.capture / "capture.toml" if name in self.kept else None
+        return make_params(name, self.overrides.get(name), toml)
+
+    def changed_params(self, name: str, rec: StageRecord | None) -> list[str]:
+        """``stage.param old -> new`` for each parameter the last run of ``name`` used differently."""
+        if rec is None or not isinstance(rec.params, dict):
+            return []
+        return changes(name, rec.params, self.params(name).model_dump(mode="json"))
 
     def _inputs(self, name: str) -> dict[str, str]:
         mod = graph.stage_module(name)
@@ -165,6 +167,8 @@ class Pipeline:
         for f in files:
             f = Path(f)
             rel = os.path.relpath(f, self.capture)
+            if rel.startswith("..") and getattr(mod, "READS_OUTSIDE_CAPTURE", False):
+                rel = f"outside:{f.name}"  # by name and content: a copied or moved capture keeps its key
             if not check_input(f, self.capture, outside_ok):
                 out[rel] = "missing"
             elif rel == "capture.toml":
@@ -224,8 +228,9 @@ class Pipeline:
                 state = "done"
             else:
                 state = "stale"
+            changed = self.changed_params(name, rec) if state == "stale" else []
             rows.append({"stage": name, "state": state, "seconds": rec.wall_seconds if rec else None,
-                         "key": rec.key if rec else "", "current_key": key,
+                         "key": rec.key if rec else "", "current_key": key, "changed": changed,
                          "summary": rec.summary if rec else "", "finished": rec.finished if rec else ""})
         return rows
 
@@ -311,7 +316,9 @@ class Pipeline:
             return StageReport(name, "n/a", "", 0.0, f"not needed (runs when {graph.applies_when(name)})")
         key, parts = self.key(name)
         rec = self.record(name)
-        note = ""
+        changed = self.changed_params(name, rec) if rec is not None and rec.key != key else []
+        # never silently: a rerun that undoes a setting of the last run says which (keep one in capture.toml)
+        note = f"params changed since the last run: {'; '.join(changed)}; " if changed else ""
         if rec is not None and rec.key == key and not forced:
             damage = integrity.damage(self.stage_dir(name), rec.artifacts, self._memo)
             if damage is None:

@@ -1,8 +1,9 @@
 """The probe stage's artifact folder (``objcam/probe/``, data_layout.md ``### probe/<name>/``): file names, the
 writer for one probe, and the readers :mod:`objcam.probe.truth` uses.
 
-Per probe ``<name>/``:
-    envmap_gt.exr          (Hf, 2Hf, 3) float32 fine lat-long radiance (world frame, objcam convention), 0 where not
+Every lat-long file here (EXR and PNG) is in the standard file convention (objcam.envmap.to_file). Per probe
+``<name>/``:
+    envmap_gt.exr          (Hf, 2Hf, 3) float32 fine lat-long radiance (world frame), 0 where not
                            observed (blind spot, camera reflection, outside the image)
     flags.png              (Hf, 2Hf) uint8 mask bits of objcam.probe.unwrap (0 valid, 1 blind, 2 camera,
                            4 saturated, 8 outside): lets a reader area-average to any other resolution
@@ -27,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from objcam.image_io import atomic_write_text, read_exr, tonemap, write_exr, write_png
+from objcam.envmap import from_file, read_latlong, write_latlong, write_latlong_png
+from objcam.image_io import atomic_write_text, tonemap, write_png
 
 INDEX = "probes.json"
 FORMAT = 1
@@ -39,20 +41,23 @@ def coarse_names(height: int) -> tuple[str, str, str]:
 
 
 def write_mask(path: Path, mask: np.ndarray) -> None:
-    write_png(path, np.asarray(mask, bool).astype(np.float64))
+    """A lat-long mask (objcam's grid) as a PNG in the standard file convention."""
+    write_latlong_png(path, np.asarray(mask, bool).astype(np.float64))
 
 
 def write_uint8(path: Path, a: np.ndarray) -> None:
-    write_png(path, np.asarray(a, np.float64) / 255.0)
+    """A lat-long uint8 map (objcam's grid) as a PNG in the standard file convention."""
+    write_latlong_png(path, np.asarray(a, np.float64) / 255.0)
 
 
 def read_uint8(path: Path) -> np.ndarray:
+    """A lat-long uint8 PNG (standard file convention) as objcam's grid."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise FileNotFoundError(path)
-    return img if img.ndim == 2 else img[..., 0]
+    return from_file(img if img.ndim == 2 else img[..., 0])
 
 
 def _dimmed(env: np.ndarray, valid: np.ndarray, ref: float) -> np.ndarray:
@@ -66,18 +71,18 @@ def write_probe(folder: Path, fine_env: np.ndarray, flags: np.ndarray, coarse_en
     folder.mkdir(parents=True, exist_ok=True)
     valid = flags == 0
     h = coarse_env.shape[0]
-    write_exr(folder / "envmap_gt.exr", fine_env)
+    write_latlong(folder / "envmap_gt.exr", fine_env)
     write_uint8(folder / "flags.png", flags)
     write_mask(folder / "valid.png", valid)
     e_name, v_name, s_name = coarse_names(h)
-    write_exr(folder / e_name, coarse_env)
+    write_latlong(folder / e_name, coarse_env)
     write_mask(folder / v_name, coarse_valid)
     write_mask(folder / s_name, coarse_sat)
     vals = fine_env[valid]
     ref = float(np.percentile(vals, 99)) if vals.size else None
     _, ref = tonemap(fine_env, ref)
-    write_png(folder / "envmap_gt.png", _dimmed(fine_env, valid, ref))
-    write_png(folder / f"envmap_gt_{h}.png", _dimmed(coarse_env, coarse_valid, ref))
+    write_latlong_png(folder / "envmap_gt.png", _dimmed(fine_env, valid, ref))
+    write_latlong_png(folder / f"envmap_gt_{h}.png", _dimmed(coarse_env, coarse_valid, ref))
     record = dict(record, tonemap_reference=ref)
     atomic_write_text(folder / "probe.json", json.dumps(record, indent=2))
 
@@ -125,6 +130,6 @@ def read_index(stage_dir: Path) -> dict[str, dict]:
 
 def read_fine(folder: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     """(envmap (Hf, 2Hf, 3) float32, flags (Hf, 2Hf) uint8, probe.json record) of one probe folder."""
-    env = read_exr(folder / "envmap_gt.exr")[..., :3]
+    env = read_latlong(folder / "envmap_gt.exr")[..., :3]
     flags = read_uint8(folder / "flags.png")
     return env, flags, json.loads((folder / "probe.json").read_text())

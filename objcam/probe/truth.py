@@ -55,9 +55,9 @@ def probe_truth(probe_stage_dir: Path, illumination: str, height: int) -> tuple[
     folder = stage / entry.get("folder", name)
     e_name, v_name, _ = coarse_names(height)
     if (folder / e_name).is_file() and (folder / v_name).is_file():
-        from objcam.image_io import read_exr
+        from objcam.envmap import read_latlong
 
-        env = read_exr(folder / e_name)[..., :3].astype(np.float64)
+        env = read_latlong(folder / e_name)[..., :3].astype(np.float64)
         valid = read_uint8(folder / v_name) > 127
         return env, valid
     env, flags, rec = read_fine(folder)

@@ -30,7 +30,8 @@ figcaption { font-size: .85rem; color: #444; margin-top: .35rem; }
 .note { background: #fff8e1; border-left: 4px solid #f0b400; padding: .4rem .7rem; font-size: .9rem; }
 .table-wrap { overflow-x: auto; }
 table { border-collapse: collapse; font-size: .88rem; margin: .5rem 0 1rem; }
-th, td { border: 1px solid #ddd; padding: .25rem .55rem; text-align: left; vertical-align: top; }
+th, td { border: 1px solid #ddd; padding: .25rem .55rem; text-align: left; vertical-align: top;
+         overflow-wrap: break-word; }
 th { background: #f3f3f3; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
 .meta { color: #555; font-size: .9rem; }
@@ -114,23 +115,27 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], caption: str | 
     out = ['<div class="table-wrap"><table>']
     if caption:
         out.append(f"<caption>{esc(caption)}</caption>")
-    out.append("<thead><tr>" + "".join(f'<th scope="col">{esc(h)}</th>' for h in headers) + "</tr></thead><tbody>")
+    # a break opportunity after each underscore: long snake_case names wrap instead of widening the table
+    out.append("<thead><tr>" + "".join(f'<th scope="col">{esc(h).replace("_", "_<wbr>")}</th>' for h in headers)
+               + "</tr></thead><tbody>")
     for row in rows:
         cells = []
         for v in row:
             num = isinstance(v, (int, float)) and not isinstance(v, bool)
-            cells.append(f'<td class="num">{esc(fmt(v))}</td>' if num else f"<td>{esc(fmt(v))}</td>")
+            cells.append(f'<td class="num">{esc(fmt(v))}</td>' if num else
+                         f"<td>{esc(fmt(v)).replace('_', '_<wbr>')}</td>")
         out.append("<tr>" + "".join(cells) + "</tr>")
     out.append("</tbody></table></div>")
     return "".join(out)
 
 
-def page(title: str, body: str, subtitle: str = "") -> str:
+def page(title: str, body: str, subtitle: str = "", css: str = "", script: str = "") -> str:
+    """The page: ``css`` added to the stylesheet, ``script`` (a whole inline <script> element) at the end."""
     sub = f'<p class="meta">{subtitle}</p>' if subtitle else ""
     return ("<!DOCTYPE html>\n"
             '<html lang="en"><head><meta charset="utf-8">'
             '<meta name="viewport" content="width=device-width, initial-scale=1">'
-            f"<title>{esc(title)}</title><style>{CSS}</style></head>"
+            f"<title>{esc(title)}</title><style>{CSS}{css}</style></head>"
             f"<body><header><h1>{esc(title)}</h1>{sub}</header><main>{body}</main>"
             "<footer><p class=\"meta\">Written by objcam's report stage. Self-contained: every image is inlined."
-            "</p></footer></body></html>\n")
+            f"</p></footer>{script}</body></html>\n")

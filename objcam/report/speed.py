@@ -13,8 +13,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-# Where a source checkout keeps the benchmark's results (committed copy first, then the latest local run).
-DEFAULT_RESULTS = (Path(__file__).resolve().parents[2] / "bench" / "results.json",
+# The benchmark's results: the copy shipped in the package (``make bench`` refreshes it beside bench/results.json,
+# so an installed objcam has it too), then a source checkout's latest local run.
+DEFAULT_RESULTS = (Path(__file__).resolve().parents[1] / "assets" / "bench_results.json",
                    Path(__file__).resolve().parents[2] / "bench" / "out" / "results.json")
 
 
@@ -43,6 +44,21 @@ def bench_points(results: dict) -> list[dict[str, Any]]:
     return out
 
 
+def _log_ticks(axis) -> None:
+    """Plain-number labels on a log axis at 1, 2, 5 x 10^k (1 x 10^k only past two decades), none on the minor
+    ticks: matplotlib labels minor ticks when the range is under a decade, and those labels overlap."""
+    import math
+
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    lo, hi = sorted(axis.get_view_interval())
+    decades = math.log10(hi / lo) if lo > 0 and hi > 0 else 3.0
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades <= 2 else (1.0,)))
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_locator(LogLocator(base=10, subs=tuple(range(2, 10))))
+    axis.set_minor_formatter(NullFormatter())
+
+
 def speed_error_png(points: list[dict[str, Any]], capture_points: list[dict[str, Any]], dpi: int = 100) -> bytes:
     """PNG bytes of the two-panel figure. ``capture_points``: {'name', 'seconds', 'ssim', 'relative_rmse'}."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -65,8 +81,10 @@ def speed_error_png(points: list[dict[str, Any]], capture_points: list[dict[str,
                 ax.annotate(str(c["name"]), (c["seconds"], c[key]), textcoords="offset points", xytext=(5, 4),
                             fontsize=8)
         ax.set_xscale("log")
+        _log_ticks(ax.xaxis)
         if key == "relative_rmse":
             ax.set_yscale("log")
+            _log_ticks(ax.yaxis)
         ax.set_xlabel("time: build A + solve (s, 2 cores)")
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.25)

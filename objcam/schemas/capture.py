@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Literal, Union
+from typing import Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -127,6 +127,9 @@ class CameraFacts(BaseModel):
                                                         "halves the size, no interpolation)")
     exposure_times: dict[str, float] = Field(default_factory=dict, description="exposure time override, seconds, "
                                              "by file name, for files without EXIF")
+    exposure_time: float | None = Field(None, gt=0, allow_inf_nan=False, description="seconds, for every photo "
+                                        "without an EXIF exposure time (a folder of JPEGs shot at one setting); "
+                                        "exposure_times and EXIF take precedence")
     distortion: list[float] | None = Field(None, description="OpenCV distortion k1 k2 p1 p2 [k3], if known")
     focal_px: float | None = Field(None, gt=0, description="focal length in pixels of the decoded photo (after "
                                    "demosaicing), principal point at the centre: the K the distortion was "
@@ -179,6 +182,8 @@ class CaptureManifest(BaseModel):
     board: BoardSpec | None = None
     scale: ScaleSpec | None = None
     probes: list[ProbeSpec] = Field(default_factory=list)
+    # [params.<stage>]: settings kept with the capture (objcam.pipeline.params checks the stage and names)
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _flavour(self):

@@ -16,8 +16,8 @@ import json
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from objcam.envmap import EnvGrid
-from objcam.image_io import atomic_write_text, read_exr, write_exr
+from objcam.envmap import EnvGrid, read_latlong, write_latlong
+from objcam.image_io import atomic_write_text, write_exr
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
 
@@ -87,7 +87,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         # (on A's grid: a supersampled transport's solve writes it as envmap_fine.exr, objcam.solvers.refine)
         sdir = solve_dir / target.name
         env_file = next(p for p in (sdir / "envmap_fine.exr", sdir / "envmap.exr") if p.is_file())
-        x_solved = read_exr(env_file)[..., :3].reshape(-1, 3)[tr.texel_index]
+        x_solved = read_latlong(env_file)[..., :3].reshape(-1, 3)[tr.texel_index]
         if group not in done_groups:
             G = tr.gram()[0] if tr.channels == 1 else gram(A)
             lr = absolute_weights(G, 0.0, params.lr)[1]
@@ -99,7 +99,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             h_img = an.scatter_to_image(h, tr.pixel_index, tr.image_shape)
             u_map = an.to_grid(unc, grid, tr.texel_index)
             write_exr(gdir / "leverage.exr", np.nan_to_num(h_img))
-            write_exr(gdir / "uncertainty.exr", np.nan_to_num(u_map))
+            write_latlong(gdir / "uncertainty.exr", np.nan_to_num(u_map))
             an.plot_image_map(h_img, gdir / "leverage.png", title="leverage h_ii (pixels the solve leans on)",
                               units="h_ii", log=True)
             an.plot_envmap_map(u_map, gdir / "uncertainty.png", log=True,

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from objcam.envmap import resample_to_height
+from objcam.envmap import read_latlong, read_latlong_mask, resample_to_height, to_file
 from objcam.figures import overview_figure
 from objcam.errors import InputError
 from objcam.image_io import atomic_write_text, read_exr, tonemap, write_exr, write_png
@@ -93,6 +93,8 @@ def input_files(capture: Path) -> list[Path]:
 
 
 def _compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarray) -> None:
+    """truth | estimate | |error|, each (H, 2H) of objcam's grid drawn in the standard file convention."""
+    truth, est, mask = to_file(truth), to_file(est), to_file(mask)
     t, ref = tonemap(truth)
     e, _ = tonemap(est, ref)
     err, _ = tonemap(np.abs(est - truth), ref)
@@ -209,8 +211,6 @@ def _finite_or_null(d: dict) -> dict:
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
-    import cv2
-
     from objcam.baselines import with_baselines
     from objcam.metrics import envmap_metrics
 
@@ -219,8 +219,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     results: dict[str, dict] = {}
     for target in scene.targets:
         tpath = truth_envmap_path(inputs.capture, target.name)
-        est = read_exr(solve_dir / target.name / "envmap.exr")[..., :3].astype(np.float64)
-        mask = cv2.imread(str(solve_dir / target.name / "envmap_mask.png"), cv2.IMREAD_UNCHANGED) > 127
+        est = read_latlong(solve_dir / target.name / "envmap.exr")[..., :3].astype(np.float64)
+        mask = read_latlong_mask(solve_dir / target.name / "envmap_mask.png")
         sinfo = json.loads((solve_dir / target.name / "solve.json").read_text())
         unknown = sinfo.get("albedo") == "unknown" and bool(sinfo.get("scale_ambiguous", True))
         # unknown albedo (no pixel of known albedo to pin it): the envmap is known up to a scale per channel;
@@ -238,7 +238,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             # the probe's radiance is in the photos' units, not the targets' exposure: compare up to scale
             inv = inv or True
         else:
-            truth_full = read_exr(tpath)[..., :3].astype(np.float64)
+            truth_full = read_latlong(tpath)[..., :3].astype(np.float64)
             if not np.all(np.isfinite(truth_full)):
                 raise InputError("truth envmap has NaN or infinite values", tpath, "re-export it")
             if truth_full.shape[1] != 2 * truth_full.shape[0]:

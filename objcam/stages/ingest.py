@@ -149,8 +149,8 @@ def _ingest_views(capture: Path, m: CaptureManifest, out: Path, wb, params: Para
         stems[p.stem] = p
     records, refs = [], []
     for p in photos:
-        ph = decode(p, demosaic=m.camera.demosaic, wb=wb, time_s=time_override(p, m.camera.exposure_times, capture),
-                    sat_margin=params.sat_margin)
+        t_s = time_override(p, m.camera.exposure_times, capture, m.camera.exposure_time)
+        ph = decode(p, demosaic=m.camera.demosaic, wb=wb, time_s=t_s, sat_margin=params.sat_margin)
         h, w = ph.rgb.shape[:2]
         img, valid = _undistort(ph.rgb, ~ph.saturated, m)
         size = copy_size(w, h, m.views.max_size)
@@ -180,7 +180,7 @@ def _ingest_bracket(kind: str, name: str, folder: Path, capture: Path, m: Captur
 
     what = f"{kind[:-1]} {name}"
     photos = list_photos(folder, what)
-    times = [time_override(p, m.camera.exposure_times, capture) for p in photos]
+    times = [time_override(p, m.camera.exposure_times, capture, m.camera.exposure_time) for p in photos]
     br = merge_folder(photos, demosaic=m.camera.demosaic, wb=wb, times=times, low=params.low, high=params.high,
                       sat_margin=params.sat_margin, what=what)
     rgb, valid = _undistort(br.rgb, br.valid, m)

@@ -31,7 +31,7 @@ Radiance units: those of ingest's image.exr (exposure-normalised), divided by th
 the targets' images when ingest normalised them alike.
 
 Writes per probe ``<name>/`` (see objcam/probe/artifact.py and data_layout.md ``### probe/<name>/``):
-    envmap_gt.exr           full-resolution lat-long envmap (objcam convention, world frame), linear RGB
+    envmap_gt.exr           full-resolution lat-long envmap (standard file convention, world frame), linear RGB
     flags.png               fine mask bits (0 valid, 1 blind, 2 camera, 4 saturated, 8 outside the image)
     envmap_gt_<H>.exr       area-averaged to the solve resolution (H x 2H; H = the transport's env_height)
     valid.png, valid_<H>.png   texels the ball shows (not the camera's reflection, not the blind spot)

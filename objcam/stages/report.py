@@ -1,12 +1,15 @@
 """Stage ``report``: one self-contained HTML page per capture, ``report/index.html``.
 
-Every image is inlined as a base64 PNG data URI (no external resources, no JavaScript), so the one file can be
-mailed. Per target: the overview (target photo | truth | estimate) or, without truth, the target and the
-recovered envmap; the error map; prediction and residual; the analysis images of its camera group (leverage,
-uncertainty, spectrum, gains) and its Cook's distance; with unknown albedo the recovered albedo, its mask and
+Every image is inlined as a base64 PNG data URI (no external resources; one inline script: the envmaps' exposure
+slider), so the one file can be mailed. A photographed capture starts with how it became a scene (ingest, SfM,
+geometry, texture, probe: objcam.report.capture). Per target: the envmap large, beside the truth and the chrome
+ball at one exposure with a slider, direction labels and the horizon (objcam.report.envmap_view), the quality
+line; the overview (target photo | truth | estimate) and the error map; prediction and residual; the analysis
+images of its camera group (leverage, uncertainty, spectrum, gains) and its Cook's distance; with unknown albedo the recovered albedo, its mask and
 the comparison with the true albedo. A speed-against-error plot places the run among the benchmark's settings
 (``make bench``'s results.json).  Then tables of the stages (time, peak memory, summary,
-key) and of the metrics (evaluate, solve, analysis). Missing optional artifacts get a note, never a crash.
+key) and of the metrics (evaluate, solve, analysis), the parameters every stage ran with, objcam's version and
+links to the artifact files. Missing optional artifacts get a note, never a crash.
 """
 
 from __future__ import annotations
@@ -21,11 +24,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from objcam.image_io import atomic_write_text
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.report import html as H
+from objcam.report import envmap_view, results
 
 NAME = "report"
 DEPS = ("scene", "transport", "solve", "evaluate", "analysis")
-VERSION = "2"
-CODE_DEPS = ("objcam.report.html", "objcam.report.speed")
+OPTIONAL_DEPS = ("ingest", "sfm", "geometry", "texture", "probe")  # a photographed capture's story
+VERSION = "3"
+CODE_DEPS = ("objcam.report.html", "objcam.report.speed", "objcam.report.capture", "objcam.report.envmap_view",
+             "objcam.report.results")
 
 EXPOSURE_NOTE = ("Envmaps share one exposure: divided by the truth's 99th percentile (over solved texels), clipped "
                  "to 1, gamma 1/2.2; texels the solve did not model are dimmed.")
@@ -42,7 +48,8 @@ class Params(BaseModel):
     max_image_width: int = Field(1200, ge=64, description="wider PNGs are downscaled (area) before inlining, "
                                                           "to keep the page small")
     bench_results: str | None = Field(None, description="the benchmark's results.json for the speed-against-error "
-                                      "plot; None: bench/results.json (or bench/out/results.json) of the source "
+                                      "plot; None: the copy shipped in objcam/assets (bench_results.json, what "
+                                      "`make bench` wrote last), else bench/out/results.json of a source "
                                       "checkout, if there is one")
 
 
@@ -75,14 +82,14 @@ def _target_names(up: dict[str, Path]) -> list[str]:
 
 def _stage_table(up: dict[str, Path]) -> tuple[str, list[str]]:
     rows, names = [], []
-    for name in DEPS:
+    for name in [n for n in OPTIONAL_DEPS if n in up] + list(DEPS):
         info = _json(up[name] / "stage.json") if name in up else None
         names.append(name)
         if not isinstance(info, dict):
             rows.append((name, None, None, "no stage.json", None, None))
             continue
         rows.append((name, info.get("wall_seconds"), info.get("peak_rss_mb"), info.get("summary") or "",
-                     info.get("key"), info.get("finished")))
+                     (info.get("key") or "")[:12], info.get("finished")))
     return H.table(("stage", "wall time (s)", "peak RSS (MB)", "summary", "key", "finished"), rows), names
 
 
@@ -149,7 +156,7 @@ def _verdict_html(v: dict) -> str:
 
 
 def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | None, width: int,
-                    seen_groups: set[str]) -> str:
+                    seen_groups: set[str], capture: Path, illumination: str | None) -> str:
     png = lambda p: H.read_png(p, width)  # noqa: E731
     sd, ed, ad = up["solve"] / t, up["evaluate"] / t, up["analysis"]
     parts = [f'<section id="target-{H.esc(t)}"><h2>Target {H.esc(t)}</h2>']
@@ -157,6 +164,9 @@ def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | Non
     if isinstance(sinfo, dict) and isinstance(sinfo.get("verdict"), dict):
         parts.append(_verdict_html(sinfo["verdict"]))
     m = metrics.get(t) if isinstance(metrics, dict) else None
+    maps, note, ref = results.target_maps(capture, up, t, illumination, m)
+    parts.append(envmap_view.envmap_panel(t, maps, note, ref))
+    parts.append(results.verdict_line(_json(sd / "solve.json"), m))
     if isinstance(m, dict):
         parts.append(f"<p>SSIM <strong>{H.esc(H.fmt(m.get('ssim')))}</strong>, relative RMSE "
                      f"<strong>{H.esc(H.fmt(m.get('relative_rmse')))}</strong>, brightest-source angle "
@@ -166,8 +176,7 @@ def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | Non
             parts.append(f"<p>The truth's row-mean map (no azimuth) scores SSIM {H.esc(H.fmt(rm.get('ssim')))} and "
                          f"relative RMSE {H.esc(H.fmt(rm.get('relative_rmse')))}; the constant map SSIM "
                          f"{H.esc(H.fmt((m['baselines'].get('constant') or {}).get('ssim')))}.</p>")
-    # recovered envmap next to the truth
-    parts.append("<h3>Recovered environment map</h3>")
+    parts.append("<h3>Overview and error</h3>")
     overview = png(ed / "overview.png")
     if overview is not None:
         parts.append(H.grid([
@@ -226,17 +235,25 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     analysis = _json(up["analysis"] / "analysis.json") if "analysis" in up else None
     analysis = analysis if isinstance(analysis, dict) else {}
 
+    from objcam.report.capture import capture_sections
+
     body: list[str] = []
-    toc = "".join(f'<li><a href="#target-{H.esc(t)}">{H.esc(t)}</a></li>' for t in targets)
-    body.append(f"<nav><p>Targets:</p><ul>{toc}</ul><p><a href=\"#speed\">Speed against error</a> \u00b7 "
-                "<a href=\"#stages\">Stages</a> \u00b7 <a href=\"#metrics\">Metrics</a></p></nav>")
+    photo_html, photo_toc = capture_sections(up, params.max_image_width, capture)
+    toc = "".join(f'<li><a href="#{s}">{H.esc(title)}</a></li>' for s, title in photo_toc)
+    toc += "".join(f'<li><a href="#target-{H.esc(t)}">target {H.esc(t)}</a></li>' for t in targets)
+    body.append(f"<nav><ul>{toc}</ul><p><a href=\"#speed\">Speed against error</a> \u00b7 "
+                "<a href=\"#stages\">Stages</a> \u00b7 <a href=\"#metrics\">Metrics</a> \u00b7 "
+                "<a href=\"#params\">Parameters</a> \u00b7 <a href=\"#files\">Files</a></p></nav>")
+    body.append(photo_html)
     if not has_truth:
         body.append(H.note("This capture has no truth/ (evaluate wrote {\"truth\": false}): no accuracy metrics "
                            "or truth comparison."))
     seen: set[str] = set()
+    illum = {r.get("name"): r.get("illumination") for r in (_json(up["scene"] / "targets.json") or [])
+             if isinstance(r, dict)} if "scene" in up else {}
     for t in targets:
         body.append(_target_section(t, up, metrics if has_truth else {}, groups.get(t), params.max_image_width,
-                                    seen))
+                                    seen, capture, illum.get(t)))
 
     body.append(_speed_section(up, targets, metrics if has_truth else {}, params.bench_results))
     stage_html, stage_names = _stage_table(up)
@@ -268,10 +285,16 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         body.append(H.table(("target", "cooks_max", "cooks_over_4_over_M"),
                             [(t, v.get("cooks_max"), v.get("cooks_over_4_over_M")) for t, v in at.items()]))
     body.append("</section>")
+    body.append(results.params_section(up))
+    body.append(results.links_section(up, targets))
+
+    from objcam import __version__
 
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    subtitle = (f"capture <code>{H.esc(capture)}</code> \u00b7 {len(targets)} target(s) \u00b7 written {H.esc(now)}")
-    text = H.page(f"objcam report: {capture.name}", "".join(body), subtitle=subtitle)
+    subtitle = (f"capture <code>{H.esc(capture)}</code> \u00b7 {len(targets)} target(s) \u00b7 written {H.esc(now)}"
+                f" \u00b7 objcam {H.esc(__version__)}")
+    text = H.page(f"objcam report: {capture.name}", "".join(body), subtitle=subtitle, css=envmap_view.CSS,
+                  script=envmap_view.SCRIPT)
     atomic_write_text(inputs.out / "index.html", text)
     size_mb = len(text.encode("utf-8")) / 1e6
     return StageOutputs(metrics={"bytes": len(text.encode("utf-8")), "targets": len(targets),

@@ -11,7 +11,8 @@ texel), prediction.exr, residual.exr (target - prediction, 0 at unused pixels), 
 that was fitted), tonemapped PNGs of each, and solve.json; with unknown albedo also albedo.exr (pooled image
 size, 0 where not estimated), albedo.png and albedo_mask.png (255 where the albedo was unknown and estimated);
 with a supersampled A (``transport.supersample``) also envmap_fine.exr and envmap_fine_mask.png on A's grid,
-envmap.exr being their area average.
+envmap.exr being their area average. Lat-long files (envmap*.exr, envmap*.png) are in the standard file convention
+(objcam.envmap.to_file).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from objcam.errors import StageError
-from objcam.image_io import atomic_write_text, write_exr, write_png, write_tonemapped_png
+from objcam.envmap import write_latlong, write_latlong_png
+from objcam.image_io import atomic_write_text, tonemap, write_exr, write_png, write_tonemapped_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
 from objcam.solvers.plan.capture import solve_capture
@@ -79,14 +81,14 @@ def write_target(d: Path, sol: TargetSolution, data: TargetData) -> None:
     """One target's artifacts (see the module docstring)."""
     resid = np.where(data.pooled_ok[..., None], data.pooled - sol.prediction, 0.0)
     if sol.fine is not None:
-        write_exr(d / "envmap_fine.exr", sol.fine[0])
-        write_png(d / "envmap_fine_mask.png", sol.fine[1].astype(float))
-    write_exr(d / "envmap.exr", sol.envmap)
-    write_png(d / "envmap_mask.png", sol.mask.astype(float))
+        write_latlong(d / "envmap_fine.exr", sol.fine[0])
+        write_latlong_png(d / "envmap_fine_mask.png", sol.fine[1].astype(float))
+    write_latlong(d / "envmap.exr", sol.envmap)
+    write_latlong_png(d / "envmap_mask.png", sol.mask.astype(float))
     write_exr(d / "prediction.exr", sol.prediction)
     write_exr(d / "residual.exr", resid)
     write_exr(d / "target.exr", data.pooled)
-    write_tonemapped_png(d / "envmap.png", sol.envmap)
+    write_latlong_png(d / "envmap.png", tonemap(sol.envmap)[0])
     ref = write_tonemapped_png(d / "target.png", data.pooled)
     write_tonemapped_png(d / "prediction.png", sol.prediction, exposure_ref=ref)
     write_tonemapped_png(d / "residual.png", np.abs(resid), exposure_ref=ref)

@@ -18,19 +18,20 @@ ASSETS = Path(__file__).resolve().parent.parent / "assets"
 
 
 def bundled_envmaps() -> list[str]:
-    """Names of the bundled environment maps (objcam/assets/envmaps/*.exr, 128 x 256, objcam's convention)."""
+    """Names of the bundled environment maps (objcam/assets/envmaps/*.exr, 128 x 256, standard lat-long files)."""
     return sorted(p.stem for p in (ASSETS / "envmaps").glob("*.exr"))
 
 
 def load_bundled_envmap(name: str) -> np.ndarray:
-    """A bundled environment map (H, 2H, 3) float32 linear radiance in objcam's lat-long convention."""
-    from objcam.image_io import read_exr
+    """A bundled environment map (H, 2H, 3) float32 linear radiance on objcam's grid (the file is in the standard
+    lat-long convention, objcam.envmap.from_file)."""
+    from objcam.envmap import read_latlong
 
     path = ASSETS / "envmaps" / f"{name}.exr"
     if not path.is_file():
         raise InputError(f"no bundled envmap named {name!r}", None, f"use one of {', '.join(bundled_envmaps())} "
-                         "or the path of an EXR in objcam's lat-long convention")
-    return np.ascontiguousarray(read_exr(path)[..., :3], dtype=np.float32)
+                         "or the path of an EXR in the standard lat-long convention (data_layout.md)")
+    return np.ascontiguousarray(read_latlong(path)[..., :3], dtype=np.float32)
 
 
 # An HDRI's negative texels are compression noise when few and tiny: clamped to 0 with a note. More of them, or
@@ -55,9 +56,10 @@ def clamp_tiny_negatives(env: np.ndarray, path: Path) -> tuple[np.ndarray, str |
 
 
 def load_envmap(spec: str, height: int | None = None, notes: list[str] | None = None) -> np.ndarray:
-    """A bundled name or the path of an EXR (H, 2H) in objcam's convention, optionally resampled to ``height``.
+    """A bundled name or the path of an EXR (H, 2H) in the standard lat-long convention, as objcam's grid, optionally
+    resampled to ``height``.
     Tiny negative texels are clamped (``clamp_tiny_negatives``), with a note appended to ``notes``."""
-    from objcam.envmap import resample_to_height
+    from objcam.envmap import from_file, resample_to_height
     from objcam.image_io import read_exr
 
     if spec in bundled_envmaps():
@@ -66,8 +68,8 @@ def load_envmap(spec: str, height: int | None = None, notes: list[str] | None = 
         path = Path(spec)
         if not path.is_file():
             raise InputError("envmap not found", path, f"give a bundled name ({', '.join(bundled_envmaps())}) "
-                             "or an EXR in objcam's lat-long convention")
-        env = read_exr(path)
+                             "or an EXR in the standard lat-long convention (data_layout.md)")
+        env = read_exr(path)  # the standard lat-long convention: from_file below
         if env.shape[2] == 1:
             env = np.repeat(env, 3, axis=2)
         env = env[..., :3]
@@ -76,7 +78,7 @@ def load_envmap(spec: str, height: int | None = None, notes: list[str] | None = 
                              "give an equirectangular map twice as wide as high")
         if not np.all(np.isfinite(env)):
             raise InputError("envmap has NaN or infinite values", path, "re-export it")
-        env, note = clamp_tiny_negatives(env, path)
+        env, note = clamp_tiny_negatives(from_file(env), path)
         if note and notes is not None:
             notes.append(note)
     if height is not None and env.shape[0] != height:

@@ -156,7 +156,7 @@ class SynthParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     object: str = Field("bunny", description="'bunny', 'sphere' or a mesh file (scaled to object_height)")
     object_height: float = Field(0.08, gt=0, le=5, description="object height, metres")
-    envmap: str = Field("forest", description="bundled envmap name or an EXR path (objcam lat-long convention)")
+    envmap: str = Field("forest", description="bundled envmap name or an EXR path (standard lat-long file, data_layout.md)")
     envmap_height: int = Field(128, ge=4, le=2048, description="envmap rows used for rendering and as truth")
     rotations_deg: list[float] = Field([0.0], min_length=1,
                                        description="envmap rotations about +z, one set of targets per rotation")
@@ -270,7 +270,7 @@ def synthesize(out_dir: str | Path, params: SynthParams | None = None) -> dict:
 
     Returns a summary: the targets, image sizes, clipped pixel counts, noise level, and render times.
     """
-    from objcam.envmap import rotate_z
+    from objcam.envmap import rotate_z, write_latlong
     from objcam.image_io import atomic_write_text, read_exr, write_exr, write_tonemapped_png
     from objcam.progress import bar
     from objcam.render import mitsuba_box_bitmap, render_image
@@ -350,7 +350,7 @@ def synthesize(out_dir: str | Path, params: SynthParams | None = None) -> dict:
             env_rot = rotate_z(env, rot).astype(np.float32)
             scene = build_mitsuba_scene(desc, root, envmap=mitsuba_box_bitmap(env_rot, params.envmap_upsample))
             if not per_target_env:
-                write_exr(out / "truth" / "envmap.exr", env_rot)
+                write_latlong(out / "truth" / "envmap.exr", env_rot)
             for index, (name, j, r) in enumerate(targets):
                 if r != rot:
                     continue
@@ -379,7 +379,7 @@ def synthesize(out_dir: str | Path, params: SynthParams | None = None) -> dict:
                 write_exr(out / "truth" / name / "clean.exr", clean)
                 write_tonemapped_png(out / "truth" / name / "preview.png", img)
                 if per_target_env:
-                    write_exr(out / "truth" / name / "envmap.exr", env_rot)
+                    write_latlong(out / "truth" / name / "envmap.exr", env_rot)
                     envmaps_rel[name] = f"truth/{name}/envmap.exr"
                 else:
                     envmaps_rel[name] = "truth/envmap.exr"
@@ -422,7 +422,7 @@ def synthesize(out_dir: str | Path, params: SynthParams | None = None) -> dict:
         "albedo": truth_albedo,
         "object": {"source": params.object, "height_m": params.object_height, "mesh": "object.ply",
                    "bbox_min": lo.tolist(), "bbox_max": hi.tolist(), "faces": int(len(faces))},
-        "envmap": {"source": params.envmap, "height": int(env.shape[0]), "convention": "objcam/envmap.py",
+        "envmap": {"source": params.envmap, "height": int(env.shape[0]), "convention": "standard lat-long (data_layout.md)",
                    "rotation": "objcam.envmap.rotate_z(source, rotation_deg)"},
         "plane_size": params.plane_size,
         "render": {"integrator": "path", "estimator": params.estimator, "spp": params.spp, "max_depth": params.max_depth, "seed": params.seed,

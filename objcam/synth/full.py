@@ -28,7 +28,7 @@ Layout (paths relative to the capture folder)::
     targets/<name>/frame_00.dng ...    one bracket per illumination (longest exposure first)
     probes/<name>/frame_00.dng ...     the chrome ball's bracket for that illumination
     truth/truth.json                   what is where (below); never read by the pipeline
-    truth/envmap.exr | truth/<name>/envmap.exr   the rotated envmap(s) rendered (objcam convention)
+    truth/envmap.exr | truth/<name>/envmap.exr   the rotated envmap(s) rendered (standard lat-long file)
     truth/cameras/views/<stem>.json    true cameras at the decoded (superpixel) size
     truth/cameras/targets/<name>.json, truth/cameras/probes/<name>.json
     truth/targets/<name>/clean.exr     noise-free target in ingest's units (decoded value per second)
@@ -71,7 +71,7 @@ class FullSynthParams(BaseModel):
     object_units: Literal["mm", "m"] = Field("mm", description="units of object.ply")
     albedo_known: bool = Field(False, description="write the object albedo and the board texture into "
                                "capture.toml [albedo] (default: unknown, as for a real capture)")
-    envmap: str = Field("forest", description="bundled envmap name or an EXR path (objcam lat-long convention)")
+    envmap: str = Field("forest", description="bundled envmap name or an EXR path (standard lat-long file, data_layout.md)")
     envmap_height: int = Field(128, ge=4, le=2048, description="envmap rows used for rendering and as truth")
     envmap_upsample: int = Field(2, ge=1, le=16, description="objcam.render.mitsuba_box_bitmap factor")
     rotations_deg: list[float] = Field([0.0], min_length=1, description="envmap rotations about +z: one "
@@ -236,7 +236,7 @@ def _toml(v) -> str:
 def synthesize_full(out_dir: str | Path, params: FullSynthParams | None = None) -> dict:
     """Render the synthetic photographed capture ``params`` into ``out_dir`` (created; must be empty if it
     exists). Returns a summary (files, exposure times, seconds)."""
-    from objcam.envmap import rotate_z
+    from objcam.envmap import rotate_z, write_latlong
     from objcam.image_io import atomic_write_text, write_exr
     from objcam.progress import bar
     from objcam.render import render_image
@@ -288,10 +288,10 @@ def synthesize_full(out_dir: str | Path, params: FullSynthParams | None = None) 
     for ti, (name, rot) in enumerate(targets):
         env = rotate_z(env0, rot).astype(np.float32)
         if per_target_env:
-            write_exr(truth / name / "envmap.exr", env)
+            write_latlong(truth / name / "envmap.exr", env)
             envmaps_rel[name] = f"truth/{name}/envmap.exr"
         else:
-            write_exr(truth / "envmap.exr", env)
+            write_latlong(truth / "envmap.exr", env)
             envmaps_rel[name] = "truth/envmap.exr"
         with board_scene(verts, faces, params.object_albedo, params.board, env, params.texture_px_per_m,
                          params.plane_size, params.envmap_upsample) as scene:
@@ -365,7 +365,7 @@ def synthesize_full(out_dir: str | Path, params: FullSynthParams | None = None) 
                    "mesh_world": "truth/object_world.ply", "pose": "truth/object_pose.json",
                    "world_from_object": pose.tolist(), "bbox_min": lo.tolist(), "bbox_max": hi.tolist(),
                    "faces": int(len(faces))},
-        "envmap": {"source": params.envmap, "height": int(env0.shape[0]), "convention": "objcam/envmap.py",
+        "envmap": {"source": params.envmap, "height": int(env0.shape[0]), "convention": "standard lat-long (data_layout.md)",
                    "rotation": "objcam.envmap.rotate_z(source, rotation_deg)"},
         "sensor": {"gain": sensor.gain if sensor else None,
                    "units": "decoded value (white-level units, camera white balance applied) per second = "

@@ -42,7 +42,7 @@ class ViewRingParams(BaseModel):
     object: str = Field("bunny", description="'bunny', 'sphere' or a mesh file (scaled to object_height)")
     object_height: float = Field(0.08, gt=0, le=5, description="object height, metres")
     object_albedo: float | tuple[float, float, float] = Field(0.6, description="object albedo, scalar or RGB")
-    envmap: str = Field("forest", description="bundled envmap name or an EXR path (objcam lat-long convention)")
+    envmap: str = Field("forest", description="bundled envmap name or an EXR path (standard lat-long file, data_layout.md)")
     envmap_height: int = Field(128, ge=4, le=2048, description="envmap rows used for rendering")
     rotation_deg: float = Field(0.0, description="envmap rotation about +z (objcam.envmap.rotate_z)")
     envmap_upsample: int = Field(2, ge=1, le=16, description="objcam.render.mitsuba_box_bitmap factor")
