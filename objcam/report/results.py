@@ -58,14 +58,23 @@ def target_maps(capture: Path, up: dict[str, Path], target: str, illumination: s
     return maps, "; ".join(notes), 1 if len(maps) > 1 and maps[1][0].startswith("truth") else 0
 
 
+VERDICT_COLOURS = {"green": "#1b7f3a", "yellow": "#9a6b00", "red": "#b3261e"}
+
+
 def verdict_line(solve: dict | None, m: dict | None) -> str:
-    """The quality verdict when evaluate gives one, else the fit's relative image residual and (with a truth)
-    whether the estimate beats the truth's row-mean map."""
+    """The solve's verdict (objcam.solvers.plan.verdict: grade and reasons, from the data alone) with the fit's
+    relative image residual, and (with a truth) whether the estimate beats the truth's row-mean map."""
     m = m if isinstance(m, dict) else {}
-    if m.get("verdict"):
-        return f'<p class="verdict">Quality verdict: <strong>{H.esc(m["verdict"])}</strong></p>'
-    res = (solve or {}).get("relative_image_residual")
-    parts = [f"fit residual (relative, image) <strong>{H.esc(H.fmt(res))}</strong>"]
+    solve = solve if isinstance(solve, dict) else {}
+    parts = []
+    v = solve.get("verdict") if isinstance(solve.get("verdict"), dict) else m.get("verdict")
+    if isinstance(v, dict) and v.get("grade"):
+        g = str(v["grade"])
+        why = "; ".join(str(r) for r in v.get("reasons") or []) or "the model explains the photo to its noise"
+        parts.append(f'verdict (from the data alone) <strong style="color:{VERDICT_COLOURS.get(g, "inherit")}">'
+                     f"{H.esc(g)}</strong>: {H.esc(why)}")
+    res = solve.get("relative_image_residual")
+    parts.append(f"fit residual (relative, image) <strong>{H.esc(H.fmt(res))}</strong>")
     beats = (m.get("beats_row_mean") or {}).get("ssim")
     if beats is not None:
         parts.append("beats the truth's row-mean map in SSIM" if beats else

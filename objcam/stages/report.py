@@ -144,25 +144,11 @@ def _speed_section(up: dict[str, Path], targets: list[str], metrics: dict, bench
     return "".join(parts)
 
 
-VERDICT_COLOURS = {"green": "#1b7f3a", "yellow": "#9a6b00", "red": "#b3261e"}
-
-
-def _verdict_html(v: dict) -> str:
-    """The solve's verdict (objcam.solvers.plan.verdict): its grade and reasons, from the data alone."""
-    g = str(v.get("grade", "?"))
-    why = "; ".join(str(r) for r in v.get("reasons") or []) or "the model explains the photo to its noise"
-    return (f'<p class="verdict">Verdict (from the data alone, no truth): <strong style="color:'
-            f'{VERDICT_COLOURS.get(g, "inherit")}">{H.esc(g)}</strong>: {H.esc(why)}.</p>')
-
-
 def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | None, width: int,
                     seen_groups: set[str], capture: Path, illumination: str | None) -> str:
     png = lambda p: H.read_png(p, width)  # noqa: E731
     sd, ed, ad = up["solve"] / t, up["evaluate"] / t, up["analysis"]
     parts = [f'<section id="target-{H.esc(t)}"><h2>Target {H.esc(t)}</h2>']
-    sinfo = _json(sd / "solve.json")
-    if isinstance(sinfo, dict) and isinstance(sinfo.get("verdict"), dict):
-        parts.append(_verdict_html(sinfo["verdict"]))
     m = metrics.get(t) if isinstance(metrics, dict) else None
     maps, note, ref = results.target_maps(capture, up, t, illumination, m)
     parts.append(envmap_view.envmap_panel(t, maps, note, ref))
