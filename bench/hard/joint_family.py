@@ -31,18 +31,17 @@ from bench.hard.objects import make_object, write_ply
 from bench.hard.scene import look_at_camera, render
 
 BLENDER_HDRIS = ("night", "interior", "studio")
-HDRI_DIRS = (Path("/usr/share/blender/datafiles/studiolights/world"),
-             Path("/tmp/w29/x/usr/share/blender/datafiles/studiolights/world"))
+HDRI_DIRS = (Path("/usr/share/blender/datafiles/studiolights/world"),)
 PAIRS = ((0.05, 0.8), (0.8, 0.05))  # (object known, support unknown)
 FALLBACK = (Lighting("room", "room2"), Lighting("window", "window"), Lighting("sun", "sun55", 55.0))
 
 
-def lightings(hdri_dir: Path | None) -> list[tuple[str, np.ndarray]]:
+def lightings(hdri_dir: Path | None, procedural: bool = False) -> list[tuple[str, np.ndarray]]:
     """[(name, envmap (HEIGHT, 2 HEIGHT, 3) float32)]: Blender's HDRIs area-averaged to the suite's grid (negative
-    compression noise set to 0) when found, else the procedural fallback."""
+    compression noise set to 0) when found (and not ``procedural``), else the procedural fallback."""
     from objcam.image_io import read_exr
 
-    dirs = [hdri_dir] if hdri_dir else list(HDRI_DIRS)
+    dirs = [] if procedural else [hdri_dir] if hdri_dir else list(HDRI_DIRS)
     for d in dirs:
         if d and all((d / f"{n}.exr").is_file() for n in BLENDER_HDRIS):
             out = []
@@ -54,6 +53,28 @@ def lightings(hdri_dir: Path | None) -> list[tuple[str, np.ndarray]]:
             return out
     log("Blender's HDRIs not found: the procedural room, window and sun instead")
     return [(lt.name, make_envmap(lt, 0.0)[0]) for lt in FALLBACK]
+
+
+def render_family(mesh: Path, camera: dict, envs: list[tuple[str, np.ndarray]], albedo_object: float,
+                  albedo_support: float, spp: int, cache: Path | None, tag: str = "") -> tuple[list, list]:
+    """(images (h, w, 3) float32, relative render noises) of every lighting, by the suite's own Mitsuba scene;
+    cached in ``cache`` (None: not cached)."""
+    images, mcs = [], []
+    for name, env in envs:
+        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp"
+        path = cache / f"{key}.npz" if cache is not None else None
+        if path is not None and path.is_file():
+            r = np.load(path)
+            img, mc = r["image"], float(r["mc"])
+        else:
+            img, mc = render(mesh, camera, env, albedo_object, albedo_support, spp, zlib.crc32(key.encode()) % 100000)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                np.savez_compressed(path, image=img, mc=mc)
+            log(f"  rendered {key}: render noise {100 * mc:.2f}%")
+        images.append(img)
+        mcs.append(mc)
+    return images, mcs
 
 
 def write_family_capture(root: Path, mesh_v, mesh_f, camera: dict, envs: list[tuple[str, np.ndarray]],
@@ -143,20 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for pi in (int(i) for i in args.pairs.split(",")):
         a_obj, a_sup = PAIRS[pi]
-        images, mcs = [], []
-        for name, env in envs:
-            key = f"{name}-{args.object}-el{args.elevation:g}-{a_obj:g}on{a_sup:g}-{args.size}px-{args.spp}spp"
-            cache = args.out / "renders" / f"{key}.npz"
-            if cache.is_file():
-                r = np.load(cache)
-                img, mc = r["image"], float(r["mc"])
-            else:
-                img, mc = render(mesh, camera, env, a_obj, a_sup, args.spp, zlib.crc32(key.encode()) % 100000)
-                cache.parent.mkdir(parents=True, exist_ok=True)
-                np.savez_compressed(cache, image=img, mc=mc)
-                log(f"  rendered {key}: render noise {100 * mc:.2f}%")
-            images.append(img)
-            mcs.append(mc)
+        images, mcs = render_family(mesh, camera, envs, a_obj, a_sup, args.spp, args.out / "renders",
+                                    f"{args.object}-el{args.elevation:g}")
         for known in (False, True):
             root = args.out / "captures" / f"{a_obj:g}on{a_sup:g}-{'given' if known else 'unknown'}"
             names = write_family_capture(root, v, f, camera, envs, images, a_obj, a_sup, known, args.noise,
