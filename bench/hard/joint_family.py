@@ -1,7 +1,7 @@
 """The hard suite's joint-solve family (issue 29): the support's albedo left unknown, the object's known, three
 illuminations seen from one camera, rendered by the suite's own Mitsuba scene (bench/hard/scene.py), not objcam's.
 
-    python -m bench.hard.joint_family [--out bench/out/joint] [--size 96] [--spp 1024] [--noise 0.02]
+    python -m bench.hard.joint_family [--out bench/out/joint] [--size 128] [--spp 1024] [--noise 0.02]
                                       [--set STAGE.PARAM=VALUE ...]
 
 Two albedo pairs (a dark object of 0.05 on a support of 0.8, and the reverse), each written twice per
