@@ -319,13 +319,19 @@ def image_ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, dat
     return float(s.mean() if mask is None else s[np.asarray(mask, dtype=bool)].mean())
 
 
-def albedo_metrics(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    """Errors of an estimated albedo image after the best-fit scale per channel (the joint solve's ambiguity).
+def albedo_metrics(est: np.ndarray, truth: np.ndarray, mask: np.ndarray, pinned: bool = False) -> dict:
+    """Errors of an estimated albedo image, as estimated and after the best-fit scale per channel.
 
     est, truth: (H, W, 3) albedo in [0, 1] on the (pooled) image; mask: (H, W) bool, the pixels whose albedo was
-    estimated. ``albedo_relative_rmse``: RMSE / mean(truth) over the masked pixels and channels;
-    ``albedo_ssim``: :func:`image_ssim` (data range 1, both images 0 outside the mask), mean over the mask;
-    ``albedo_scale``: the per-channel factors applied to est; ``albedo_pixels``: the number of masked pixels.
+    estimated. ``pinned``: the solve fixed the scale (pixels of known albedo, ``scale_ambiguous`` false), so the
+    headline figures compare the albedo as estimated; otherwise (the joint solve's per-channel ambiguity) after
+    the best-fit scale per channel. Headline: ``albedo_relative_rmse`` (RMSE / mean(truth) over the masked
+    pixels and channels), ``albedo_ssim`` (:func:`image_ssim`, data range 1, both images 0 outside the mask, mean
+    over the mask), ``albedo_scale`` (the per-channel factors applied to est before them: 1 when pinned),
+    ``albedo_scored_as`` ("as estimated" / "fitted scale"), ``albedo_pixels``. Always beside them, named as such:
+    ``albedo_fitted_scale`` (the best-fit factors), ``albedo_relative_rmse_fitted_scale`` and
+    ``albedo_ssim_fitted_scale`` (the figures after it), ``albedo_relative_rmse_unscaled`` and
+    ``albedo_ssim_unscaled``, and ``albedo_mean_ratio`` (per channel: mean estimate / mean truth, no scale).
     """
     est = np.asarray(est, dtype=np.float64)
     truth = np.asarray(truth, dtype=np.float64)
@@ -334,15 +340,30 @@ def albedo_metrics(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict
         raise ValueError(f"albedo {est.shape}, truth {truth.shape} and mask {m.shape} do not match")
     if not m.any():
         raise ValueError("no pixel with an estimated albedo")
-    sc = best_scale_channels(est, truth, m)
-    e = np.where(m[..., None], est * sc, 0.0)
     t = np.where(m[..., None], truth, 0.0)
-    d = e[m] - t[m]
     mean = float(t[m].mean())
+
+    def scored(sc: np.ndarray) -> tuple[float, float]:
+        e = np.where(m[..., None], est * sc, 0.0)
+        d = e[m] - t[m]
+        rmse = float(np.sqrt(np.mean(d * d)) / mean) if mean > 0 else float("inf")
+        return rmse, image_ssim(np.clip(e, 0, 1), np.clip(t, 0, 1), m)
+
+    fitted = best_scale_channels(est, truth, m)
+    rm_f, ss_f = scored(fitted)
+    rm_u, ss_u = scored(np.ones(3))
+    tm = t[m].mean(axis=0)
     return {
-        "albedo_relative_rmse": float(np.sqrt(np.mean(d * d)) / mean) if mean > 0 else float("inf"),
-        "albedo_ssim": image_ssim(np.clip(e, 0, 1), np.clip(t, 0, 1), m),
-        "albedo_scale": [float(v) for v in sc],
+        "albedo_relative_rmse": rm_u if pinned else rm_f,
+        "albedo_ssim": ss_u if pinned else ss_f,
+        "albedo_scale": [1.0, 1.0, 1.0] if pinned else [float(v) for v in fitted],
+        "albedo_scored_as": "as estimated" if pinned else "fitted scale",
+        "albedo_relative_rmse_fitted_scale": rm_f,
+        "albedo_ssim_fitted_scale": ss_f,
+        "albedo_fitted_scale": [float(v) for v in fitted],
+        "albedo_relative_rmse_unscaled": rm_u,
+        "albedo_ssim_unscaled": ss_u,
+        "albedo_mean_ratio": [float(a / b) if b > 0 else None for a, b in zip(est[m].mean(axis=0), tm)],
         "albedo_pixels": int(m.sum()),
     }
 

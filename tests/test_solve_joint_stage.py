@@ -15,7 +15,12 @@ import pytest
 from objcam.image_io import read_exr
 from objcam.pipeline.cli import main
 
-RUN = ["--quiet", "--set", "transport.model=direct", "--set", "transport.env_height=8"]
+# solve.pinned_scale=false: this tiny capture (direct light only, 22.5-degree texels under a low sunrise sun) has a
+# model error in the object's pixels that a scale pinned by their data alone passes on (measured: envmap relative
+# RMSE 3.20 -> 3.69, SSIM 0.705 -> 0.689 on cam0_rot0), which would hide what these tests compare; the pinned scale
+# is tested in tests/test_joint.py and tests/test_joint_family.py
+RUN = ["--quiet", "--set", "transport.model=direct", "--set", "transport.env_height=8",
+       "--set", "solve.pinned_scale=false"]
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +75,14 @@ def test_albedo_and_envmap_against_truth(capture):
     m = json.loads((capture / "objcam" / "evaluate" / "metrics.json").read_text())
     for t in ("cam0_rot0", "cam0_rot150"):
         r = m[t]
-        # measured 0.097 / 0.916; a constant albedo (the support's ground colour) scores 0.35 / 0.5 here
-        assert r["albedo_relative_rmse"] < 0.18 and r["albedo_ssim"] > 0.85, r
+        # the object's albedo pins the scale: evaluate scores the albedo as estimated (issue 29), measured 0.197 /
+        # 0.895 (per channel 0.75 / 0.85 / 1.03 of the truth: a low sunrise sun in this tiny capture's 22.5-degree
+        # texels, direct light only; 0.216 / 0.889 with solve.pinned_scale, 0.72 / 0.83 / 1.01; both hidden by
+        # the fitted scale before); after the fitted per-channel scale, reported beside it: 0.097 / 0.916. A
+        # constant albedo (the support's ground colour) scores 0.35 / 0.5 after that scale here
+        assert r["albedo_scored_as"] == "as estimated" and r["albedo_scale"] == [1.0, 1.0, 1.0]
+        assert r["albedo_relative_rmse"] < 0.25 and r["albedo_ssim"] > 0.85, r
+        assert r["albedo_relative_rmse_fitted_scale"] < 0.18 and r["albedo_ssim_fitted_scale"] > 0.85, r
         assert r["albedo_pixels"] > 1800
         # the sun lands within half a 22.5-degree texel (measured 0 / 8.3 deg; 16 / 11 deg for the joint solve's
         # own envmaps, solve.final_envmap=joint); the object's known albedo pins the scale, so the envmap is
@@ -104,8 +115,10 @@ def test_the_final_step_beats_the_joint_solves_own_envmaps_and_albedo(capture, t
         assert ours[t]["relative_rmse"] < 0.9 * joint[t]["relative_rmse"], (ours[t], joint[t])
         assert no_tv[t]["relative_rmse"] < 0.9 * joint[t]["relative_rmse"], (no_tv[t], joint[t])
         assert no_tv[t]["albedo_relative_rmse"] == joint[t]["albedo_relative_rmse"]  # the joint solve's albedo
-        assert ours[t]["albedo_relative_rmse"] < joint[t]["albedo_relative_rmse"]
-        assert ours[t]["albedo_ssim"] > joint[t]["albedo_ssim"]
+        # the TV step is about the albedo's structure: compared after the fitted scale (this capture's scale is
+        # off by its 22.5-degree texels under a low sun, the same for both; see test_albedo_and_envmap_against_truth)
+        assert ours[t]["albedo_relative_rmse_fitted_scale"] < joint[t]["albedo_relative_rmse_fitted_scale"]
+        assert ours[t]["albedo_ssim_fitted_scale"] > joint[t]["albedo_ssim_fitted_scale"]
         assert ours[t]["relative_rmse"] < 0.95 * no_tv[t]["relative_rmse"], (ours[t], no_tv[t])
         info = json.loads((capture / "objcam" / "solve" / t / "solve.json").read_text())
         fin = info["final_envmap"]
@@ -259,10 +272,10 @@ def test_silhouette_pixels_are_left_out_of_the_joint_fit(capture, tmp_path):
     fit = json.loads((work / "evaluate" / "metrics.json").read_text())
     for t in ("cam0_rot0", "cam0_rot150"):
         # measured: envmap relative RMSE 3.20 / 3.45 left out against 3.41 / 3.50 fitted (SSIM 0.705 / 0.749
-        # against 0.691 / 0.764); albedo relative RMSE 0.097 against 0.114 (the fitted silhouette pixels get
-        # albedos that absorb the misfit)
+        # against 0.691 / 0.764); albedo relative RMSE after the fitted scale 0.097 against 0.114 (the fitted
+        # silhouette pixels get albedos that absorb the misfit)
         assert ours[t]["relative_rmse"] < fit[t]["relative_rmse"], (ours[t], fit[t])
-        assert ours[t]["albedo_relative_rmse"] < 0.9 * fit[t]["albedo_relative_rmse"]
+        assert ours[t]["albedo_relative_rmse_fitted_scale"] < 0.9 * fit[t]["albedo_relative_rmse_fitted_scale"]
     mean_ssim = lambda m: np.mean([m[t]["ssim"] for t in ("cam0_rot0", "cam0_rot150")])  # noqa: E731
     assert mean_ssim(ours) > mean_ssim(fit) - 1e-3
 
@@ -346,9 +359,12 @@ def test_two_cameras_one_illumination_with_the_bounce_refit(tmp_path):
         assert info["pixels_excluded_mixed"] > 0 and info["kkt_residual_max"] < 1e-8
     m = json.loads((cap / "objcam" / "evaluate" / "metrics.json").read_text())
     for t, r in m.items():
-        # measured: albedo 0.129 / 0.139 relative RMSE, SSIM 0.83 / 0.84; envmap SSIM 0.695, sun 0 degrees off
-        # (one sunrise, 8 x 16; the joint solve's own envmap, solve.final_envmap=joint: 0.38, 9.3 degrees)
-        assert r["albedo_relative_rmse"] < 0.2 and r["albedo_ssim"] > 0.75, (t, r)
+        # measured after the fitted scale: albedo 0.129 / 0.139 relative RMSE, SSIM 0.83 / 0.84; as estimated
+        # (the pinned scale, what evaluate now reports first) 0.327 / 0.326: per channel 0.60 / 0.71 / 0.84 of the
+        # truth (0.63 / 0.73 / 0.86 before the pinned scale), the one sunrise's low sun in 22.5-degree texels;
+        # envmap SSIM 0.68, sun 0 degrees off (the joint solve's own envmap, solve.final_envmap=joint: 0.38, 9.3)
+        assert r["albedo_relative_rmse_fitted_scale"] < 0.2 and r["albedo_ssim_fitted_scale"] > 0.75, (t, r)
+        assert r["albedo_relative_rmse"] < 0.4 and r["albedo_scored_as"] == "as estimated", (t, r)
         assert r["ssim"] > 0.6 and r["scale"] == 1.0 and r["brightest_angle_deg"] < 5.0, (t, r)
 
 

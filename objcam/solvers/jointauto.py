@@ -41,6 +41,7 @@ class JointSetup:
     smooth. tol, max_iter: the final solve's stopping rule. polish: end on the exact float64 x-step
     (:func:`objcam.solvers.solve_joint`; off for a solve that only provides a starting point). texel_group: the
     envmap basis' group size (:func:`objcam.solvers.basis.texel_basis`; 0: one unknown per texel).
+    pinned_scale: with pixels of known albedo, end on the scale their data alone choose (issue 29).
     """
 
     method: str = "exact"
@@ -57,6 +58,7 @@ class JointSetup:
     alpha: float = 0.5
     polish: bool = True
     texel_group: float = 0.0
+    pinned_scale: bool = True
 
 
 def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel_index: np.ndarray,
@@ -70,7 +72,7 @@ def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel
     """
     kw: dict[str, Any] = dict(lr=setup.lr, lp=setup.lp, method=setup.method, max_iter=setup.max_iter,
                               prior=setup.prior if setup.method == "exact" else "smooth", polish=setup.polish,
-                              basis=texel_basis(grid, texel_index, setup.texel_group))
+                              pinned_scale=setup.pinned_scale, basis=texel_basis(grid, texel_index, setup.texel_group))
     if setup.method == "paper":
         kw["alpha"] = setup.alpha
     else:

@@ -4,10 +4,12 @@ The true envmap is area-averaged (solid-angle exact) to the solve resolution and
 solve kept: relative RMSE, RMSE and SSIM of tonemapped maps, and the angle between brightest sources (see
 objcam/metrics.py), each beside what the constant and the row-mean map of the truth score (objcam/baselines.py). A capture without ``truth/`` gets an explicit "no truth" record, not a silent pass.
 
-Unknown albedo (the solve says so in solve.json): the envmap is known only up to one scale per colour channel,
-so it is compared after the best-fit scale per channel (``scale_invariant`` None, the default); and the albedo
-image (solve's albedo.exr) is compared with the true albedo over the pixels whose albedo was estimated
-(albedo_mask.png), after its own best-fit scale per channel: relative RMSE and SSIM (objcam.metrics.albedo_metrics).
+Unknown albedo (the solve says so in solve.json) without pixels of known albedo (``scale_ambiguous`` true): the
+envmap is known only up to one scale per colour channel, so it is compared after the best-fit scale per channel
+(``scale_invariant`` None, the default), and so is the albedo image (solve's albedo.exr, over the pixels whose
+albedo was estimated, albedo_mask.png). With pixels of known albedo the solve pins the scale (``scale_ambiguous``
+false): envmap and albedo are compared as they are, and the albedo's fitted-scale figures are reported beside,
+named ``*_fitted_scale`` (objcam.metrics.albedo_metrics).
 The true albedo per pixel is rendered the way the transport stage renders a known albedo: the truth's textures and
 values (truth/truth.json ``albedo``) put on the scene's meshes (the support plane's UVs re-made for the truth
 texture's extent), the same camera and sub-pixel samples through Mitsuba, the mean albedo of the samples that hit.
@@ -20,8 +22,6 @@ estimate, with titles).
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -30,15 +30,16 @@ from pydantic import BaseModel, ConfigDict, Field
 from objcam.envmap import read_latlong, read_latlong_mask, resample_to_height, to_file
 from objcam.figures import overview_figure
 from objcam.errors import InputError
-from objcam.image_io import atomic_write_text, read_exr, tonemap, write_exr, write_png
+from objcam.image_io import atomic_write_text, read_exr, tonemap, write_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.schemas.artifacts import SceneArtifact
+from objcam.truth import truth_albedo_image, truth_envmap_path
 
 NAME = "evaluate"
 DEPS = ("scene", "transport", "solve")
 OPTIONAL_DEPS = ("probe",)  # chrome-ball ground truth: used where the capture has no truth/ envmap
 VERSION = "3"
-CODE_DEPS = ("objcam.metrics", "objcam.baselines")
+CODE_DEPS = ("objcam.metrics", "objcam.baselines", "objcam.truth")
 
 
 class Params(BaseModel):
@@ -47,42 +48,6 @@ class Params(BaseModel):
                                          "scale per colour channel where the albedo was unknown, one global scale "
                                          "for targets of relative radiometry (photos: an unknown camera gain), "
                                          "none elsewhere")
-
-
-def truth_meta(capture: Path) -> dict | None:
-    """truth/truth.json as a dict (None when absent); an InputError naming it when it is not a JSON object."""
-    meta = Path(capture) / "truth" / "truth.json"
-    if not meta.is_file():
-        return None
-    try:
-        info = json.loads(meta.read_text())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise InputError(f"truth.json is not valid JSON ({str(e)[:80]})", meta,
-                         "rewrite it (objcam synth writes it) or remove truth/") from None
-    if not isinstance(info, dict) or not isinstance(info.get("envmaps", {}), dict) \
-            or not isinstance(info.get("albedo", {}) or {}, dict):
-        raise InputError("truth.json is not an object with 'envmaps' and 'albedo' objects", meta,
-                         "see truth/ in data_layout.md, or remove truth/")
-    return info
-
-
-def truth_envmap_path(capture: Path, target: str) -> Path | None:
-    """Where a synthetic capture keeps the true envmap of ``target`` (see data_layout.md, truth/)."""
-    from objcam.pipeline.inputs import check_input
-
-    info = truth_meta(capture)
-    if info is not None:
-        rel = info.get("envmaps", {}).get(target)
-        if rel:
-            if not isinstance(rel, str):
-                raise InputError(f"truth.json envmaps.{target} is not a path", capture / "truth" / "truth.json")
-            if not check_input(capture / rel, capture):
-                raise InputError("truth envmap named in truth.json not found", capture / rel)
-            return capture / rel
-    for cand in (capture / "truth" / target / "envmap.exr", capture / "truth" / "envmap.exr"):
-        if cand.is_file():
-            return cand
-    return None
 
 
 def input_files(capture: Path) -> list[Path]:
@@ -103,60 +68,6 @@ def _compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarra
     write_png(path, np.concatenate([t, gap, e * grey, gap, err * grey], axis=1))
 
 
-def truth_albedo_image(capture: Path, scene_folder: Path, transport) -> np.ndarray | None:
-    """(H', W', 3) true albedo at the transport's kept pixels (0 elsewhere), or None without truth albedo.
-
-    Renders the truth's albedo (truth/truth.json ``albedo``: rgb or a texture, with ``extent`` for the plane) with
-    the primary samples of the transport stage (objcam.transport.geometry.primary_samples: same camera, pooling,
-    sub-pixel sample count and seed), so a pixel's truth is the footprint average the transport's albedo is.
-    """
-    from objcam.scene import AlbedoValue, MeshData, SceneDescription, make_plane
-    from objcam.transport.geometry import SceneGeometry, primary_samples
-
-    info = truth_meta(capture)
-    if info is None:
-        return None
-    meta = info.get("albedo") or {}
-    desc = SceneDescription.model_validate_json((scene_folder / "scene.json").read_text())
-    with tempfile.TemporaryDirectory(prefix="objcam-truth-albedo-") as tmp:
-        root = Path(tmp)
-        shutil.copy(scene_folder / desc.object_mesh, root / "object.npz")
-        shutil.copy(scene_folder / desc.support_mesh, root / "support.npz")
-        values = {}
-        for key, have in (("object", desc.albedo_object), ("support", desc.albedo_support)):
-            e = meta.get(key)
-            if e is None:
-                if not have.known:
-                    return None  # unknown and no truth for it
-                src = scene_folder / have.texture if have.texture else None
-                if src is not None:
-                    shutil.copy(src, root / f"albedo_{key}.exr")
-                values[key] = AlbedoValue(texture=f"albedo_{key}.exr") if src is not None else AlbedoValue(rgb=have.rgb)
-                continue
-            if e.get("texture"):
-                from objcam.pipeline.inputs import check_input
-
-                check_input(capture / str(e["texture"]), capture)  # inside the capture, a regular file
-                write_exr(root / f"albedo_{key}.exr", read_exr(capture / e["texture"])[..., :3])
-                values[key] = AlbedoValue(texture=f"albedo_{key}.exr")
-                if key == "support" and desc.support_is_plane and e.get("extent"):
-                    # the scene made the plane without a texture: give it the UVs of the truth's texture extent
-                    v = MeshData.load_npz(root / "support.npz").vertices
-                    make_plane(float(v[:, 0].max() - v[:, 0].min()), float(e["extent"])).save(root / "support.npz")
-            else:
-                values[key] = AlbedoValue(rgb=tuple(float(x) for x in e["rgb"]))
-        d2 = desc.model_copy(update={"object_mesh": "object.npz", "support_mesh": "support.npz",
-                                     "albedo_object": values["object"], "albedo_support": values["support"]})
-        geo = SceneGeometry.load(d2, root)
-        n = int(transport.attrs.get("subpixel_samples") or 32)
-        s = primary_samples(geo, transport.camera, transport.downsample, n, transport.pixel_index,
-                            transport.image_shape[1], int(transport.attrs.get("seed") or 0))
-        alb = s.albedo()
-    img = np.zeros((transport.image_shape[0] * transport.image_shape[1], 3), np.float32)
-    img[transport.pixel_index] = alb
-    return img.reshape(transport.image_shape[0], transport.image_shape[1], 3)
-
-
 def _albedo_compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarray) -> None:
     m = mask[..., None]
     gap = np.ones((truth.shape[0], 2, 3))
@@ -164,8 +75,10 @@ def _albedo_compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np
     write_png(path, np.concatenate([t, gap, e, gap, np.abs(e - t) * 4], axis=1).clip(0, 1) ** (1 / 2.2))
 
 
-def _albedo_results(inputs: StageInputs, scene, solve_dir: Path, names: list[str]) -> dict[str, dict]:
-    """Albedo metrics per target whose solve estimated an albedo; one truth render per camera group."""
+def _albedo_results(inputs: StageInputs, scene, solve_dir: Path, names: list[str],
+                    scale_invariant: bool | None) -> dict[str, dict]:
+    """Albedo metrics per target whose solve estimated an albedo; one truth render per camera group. As estimated
+    where the solve pinned the scale (or ``scale_invariant`` is False), after the per-channel scale otherwise."""
     import cv2
 
     from objcam.metrics import albedo_metrics
@@ -190,7 +103,11 @@ def _albedo_results(inputs: StageInputs, scene, solve_dir: Path, names: list[str
         mask = cv2.imread(str(d / "albedo_mask.png"), cv2.IMREAD_UNCHANGED) > 127
         if not mask.any():
             continue
-        out[name] = albedo_metrics(est, truth, mask)
+        sinfo = json.loads((d / "solve.json").read_text())
+        # pixels of known albedo pin the scale (scale_ambiguous false): score the albedo as it is; the fitted-scale
+        # figures are reported beside it, named as such
+        pinned = not bool(sinfo.get("scale_ambiguous", True)) if scale_invariant is None else not scale_invariant
+        out[name] = albedo_metrics(est, truth, mask, pinned=pinned)
         _albedo_compare_png(inputs.out / name / "albedo_compare.png", truth, est * out[name]["albedo_scale"], mask)
     return out
 
@@ -263,7 +180,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                         read_exr(solve_dir / target.name / "target.exr")[..., :3], truth, est, mask,
                         title=f"{target.name}: SSIM {m['ssim']:.3f}, relative RMSE {m['relative_rmse']:.3f}")
 
-    for name, am in _albedo_results(inputs, scene, solve_dir, list(results)).items():
+    for name, am in _albedo_results(inputs, scene, solve_dir, list(results), params.scale_invariant).items():
         results[name].update(am)
     if not results:
         atomic_write_text(inputs.out / "metrics.json", json.dumps({"truth": False}, indent=2))

@@ -34,7 +34,7 @@ import numpy as np
 from objcam.solvers.joint.accelerate import Anderson, SubspaceGN
 from objcam.solvers.joint.context import StepContext
 from objcam.solvers.joint.rho_step import rho_step
-from objcam.solvers.joint.scale_step import scale_step
+from objcam.solvers.joint.scale_step import pinned_scale, scale_step
 from objcam.solvers.joint.x_step import x_step, x_step_pcg
 from objcam.threads import single_blas_thread
 
@@ -64,12 +64,14 @@ class Alternation:
 
     def __init__(self, ctx: StepContext, *, tol: float, max_iter: int, scale_step: bool, accelerate: bool,
                  anderson_depth: int, gn_rank: int, gn_inner: int, diverge_factor: float, edge_steps: int,
-                 polish: bool):
+                 polish: bool, pinned: bool = True):
         self.ctx = ctx
         self.tol, self.max_iter, self.scale_step = tol, max_iter, scale_step
         self.accelerate = accelerate and ctx.exact
         self.anderson_depth, self.gn_rank, self.gn_inner = anderson_depth, gn_rank, gn_inner
         self.diverge_factor, self.edge_steps, self.polish = diverge_factor, edge_steps, polish
+        self.pinned = pinned
+        self.pinned_info: dict | None = None
         J = ctx.J
         self.splits = np.cumsum([A.shape[0] for A in J.As])[:-1]
         self.fixed_flat = np.concatenate(J.fixed)  # the pixels of known albedo, in the order of _flat()
@@ -320,21 +322,34 @@ class Alternation:
         in use."""
         ctx, J = self.ctx, self.ctx.J
         self.converged = (not self.diverged) and not self.active.any()
+        moved = False
         if self.diverged:
             b = self.best
             self.X, self.rho, self.S, self.obj_t, self.kkt_x = b.X, b.rho, b.S, b.obj, b.kkt_x
-        elif ctx.exact and self.polish and (ctx.fast_gram or ctx.use_pcg or J.huber_on):
+        elif ctx.exact and self.pinned and J.any_fixed:
+            # the scale the pixels of known albedo pin, by the data alone (scale_step.pinned_scale: the priors
+            # would shrink it); F may rise, so the histories (the alternation's descent) stop before it
+            before = float(self.obj_t.sum())
+            factors = pinned_scale(ctx, self.rho, self.X, self.S)
+            moved = any(f != 1.0 for f in factors)
+            self.obj_t = J.true_objective(self.rho, self.X, self.S)
+            self.pinned_info = {"factors": [float(f) for f in factors], "objective_before": before,
+                                "objective_after": float(self.obj_t.sum())}
+        if not self.diverged and ctx.exact and self.polish and (ctx.fast_gram or ctx.use_pcg or J.huber_on or moved):
             J.tangent(self.X)
             rho = self.rho
             pre = {c: J.gram(rho, c, ctx.gram_cache, fast=ctx.fast_gram) for c in range(J.C)}  # cached: no new Gram
             Xf, kf = x_step_pcg(ctx, rho, self.X, np.arange(J.C), warm=True, grams=pre)
             Sf = J.shading(Xf)
             ff = self._total(rho, Xf, Sf)
-            if ff <= self.step_hist[-1] * (1 + 1e-12):
+            if ff <= float(self.obj_t.sum()) * (1 + 1e-12):
                 self.X, self.kkt_x, self.S = Xf, kf, Sf
                 self.obj_t = J.true_objective(rho, self.X, self.S)
-                self.step_hist.append(float(self.obj_t.sum()))
-                self.hist[-1] = self.obj_t.copy()
+                if moved:  # the x-step at the pinned scale's albedo: exact for it, recorded beside the histories
+                    self.pinned_info["objective_polished"] = float(self.obj_t.sum())
+                else:
+                    self.step_hist.append(float(self.obj_t.sum()))
+                    self.hist[-1] = self.obj_t.copy()
         if not self.message:
             self.message = (
                 f"converged after {self.iters} sweeps (relative decrease < {self.tol:g})" if self.converged else

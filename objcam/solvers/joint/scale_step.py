@@ -70,6 +70,45 @@ def scale_step(ctx: StepContext, rho: list[np.ndarray], X: np.ndarray, S: list[n
     ctx.timers["scale"] += time.perf_counter() - t0
 
 
+def pinned_scale(ctx: StepContext, rho: list[np.ndarray], X: np.ndarray, S: list[np.ndarray]) -> list[float]:
+    """The scale that pixels of known albedo pin, chosen by the data alone (in place); returns c per channel.
+
+    Along the direction ``(rho_free, x) -> (clip(c rho_free), x / c)`` the data of the pixels of unknown albedo are
+    constant (unless clipped), so the only data that see it are the fixed pixels'; every envmap prior (smoothness,
+    edges, ridge) falls as x shrinks. The minimiser of F therefore leaves the fixed pixels under-predicted by
+    ``sum p (y - p) = ls R(x)``-ish: a shrinkage of the scale that is large exactly when the fixed pixels carry
+    little data (a dark object on a bright support: issue 29, its envmap a few % too dim and the support's albedo
+    as much too bright) and that barely moves with ls (a smaller ls gives a rougher x, whose R grows). The priors
+    say nothing about absolute brightness, so the scale is taken where the data put it: per channel, the c that
+    minimises the data term alone (the fixed pixels' quadratic in 1/c, the clipped free pixels' data), by the same
+    1-D search as :func:`scale_step`. F may rise (the priors pay); the caller records it."""
+    J = ctx.J
+    t0 = time.perf_counter()
+    live = [k for k in range(J.P) if rho[k].shape[0]]
+    out = [1.0] * J.C
+    if not any(J.fixed[k].any() for k in live):
+        return out
+    for c in range(J.C):
+        free_k = [~J.fixed[k] for k in live]
+        r_all = np.concatenate([rho[k][fr, c] for k, fr in zip(live, free_k)])
+        if r_all.size == 0:
+            continue
+        data_at = _data_at(J, rho, S, c, live, free_k, r_all, with_albedo_prior=False)
+
+        def f(t):
+            return data_at(np.exp(t))
+
+        cs = _best_scale(J, rho, X, c, live, r_all, f)
+        if cs is not None:
+            for k in range(J.P):
+                rho[k][:, c] = np.where(J.fixed[k], rho[k][:, c], np.clip(rho[k][:, c] * cs, J.rho_min, 1.0))
+                S[k][:, :, c] /= cs
+            X[:, :, c] /= cs
+            out[c] = cs
+    ctx.timers["scale"] += time.perf_counter() - t0
+    return out
+
+
 def _prior_at(J: JointProblem, X: np.ndarray, c: int) -> Callable[[float], float]:
     """The envmap prior at x / cs with channel c scaled, as a function of cs (the other channels' part included
     for the edge prior, whose edges they share)."""
@@ -95,10 +134,11 @@ def _prior_at(J: JointProblem, X: np.ndarray, c: int) -> Callable[[float], float
 
 
 def _data_at(J: JointProblem, rho, S, c: int, live: list[int], free_k: list[np.ndarray],
-             r_all: np.ndarray) -> Callable[[float], float]:
-    """The data term of channel c (and its albedo prior when lp > 0) at (clip(cs rho), x / cs), as a function of
-    cs. live: the cameras with pixels; free_k: their pixels of unknown albedo; r_all: those pixels' albedo."""
-    if J.lp > 0:
+             r_all: np.ndarray, with_albedo_prior: bool = True) -> Callable[[float], float]:
+    """The data term of channel c (and its albedo prior when lp > 0 and ``with_albedo_prior``) at
+    (clip(cs rho), x / cs), as a function of cs. live: the cameras with pixels; free_k: their pixels of unknown
+    albedo; r_all: those pixels' albedo."""
+    if J.lp > 0 and with_albedo_prior:
         r_c = [rho[k][:, c] for k in live]
         s_c = [S[k][:, :, c] for k in live]
         y_c = [J.Ys[k][:, :, c] for k in live]

@@ -95,6 +95,7 @@ def solve_joint(
     cg_refresh: int = 12,
     polish: bool = True,
     basis: sp.spmatrix | None = None,
+    pinned_scale: bool = True,
 ) -> JointResult:
     """Jointly recover the albedo of every camera and the L envmaps (per colour channel); see
     :mod:`objcam.solvers.joint` and its modules.
@@ -134,6 +135,10 @@ def solve_joint(
     polish: do that final exact x-step (default). ``False`` skips it for a solve whose result is only a starting
         point (the solve stage's first solve before a bounce refit): x is then the last sweep's x-step on float32
         Gram matrices (``kkt_x`` says how exact).
+    pinned_scale: with pixels of known albedo (exact only), end with the scale they pin chosen by the data alone
+        (:func:`objcam.solvers.joint.scale_step.pinned_scale`; the priors would shrink it), before the final x-step;
+        ``info["pinned_scale"]``: the factors per channel and the objective before and after (F may rise: the
+        histories end before it). ``False``: the minimiser of F, scale and all.
     basis: optional (N, N') 0/1 matrix P of texel groups (:func:`objcam.solvers.basis.texel_basis`): the solve
         runs on z with x = P z (A' P, the priors of the fine x: ``D P`` and the ridge ``||P z||^2``; the weights
         stay relative to the fine A'), and returns x = P z; ``kkt_x`` is the merged problem's.
@@ -156,7 +161,7 @@ def solve_joint(
                       use_pcg=exact and xsolver == "pcg", cg_refresh=cg_refresh)
     run = Alternation(ctx, tol=tol, max_iter=max_iter, scale_step=scale_step, accelerate=accelerate,
                       anderson_depth=anderson_depth, gn_rank=gn_rank, gn_inner=gn_inner,
-                      diverge_factor=diverge_factor, edge_steps=edge_steps, polish=polish)
+                      diverge_factor=diverge_factor, edge_steps=edge_steps, polish=polish, pinned=pinned_scale)
     run.run(rho_init)
     X, timers, stats, ref = run.X, ctx.timers, run.stats, ctx.pcg
     hist_arr = np.array(run.hist)
@@ -191,6 +196,6 @@ def solve_joint(
             operator_applications=ref.applications, pivot_rounds=ref.rounds,
             prior=prior if J.huber_on or prior == "smooth" else "smooth (edges: no edge scale)",
             edge_scale=J.edge_s.tolist(), edge_eps=J.edge_eps_rel, mm_steps=stats["mm_steps"],
-            edges_above_threshold=above,
+            edges_above_threshold=above, pinned_scale=run.pinned_info,
         ),
     )

@@ -104,7 +104,8 @@ SCALE_NOTE = ("unknown albedo: the envmap and the albedo are known only up to on
 
 
 SCALE_PINNED_NOTE = ("unknown albedo, with pixels of known albedo held at it: they fix the scale that c * albedo "
-                     "and envmap / c would otherwise leave free, so the envmap and the albedo are absolute")
+                     "and envmap / c would otherwise leave free (the joint solve ends with the c their data alone "
+                     "choose: the priors would shrink it), so the envmap and the albedo are absolute")
 
 
 #: The verdict (objcam.solvers.plan.verdict). Chosen on the hard-case suite (bench/results.md, issue 22: 96

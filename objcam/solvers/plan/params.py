@@ -125,6 +125,10 @@ class SolveParams(BaseModel):
         "the known-albedo solver (tone-weighted edge prior, edge_eps and ls as for a known albedo; measured on the "
         "dots bench scene: envmap SSIM 0.607 -> 0.710, 0.638 without the TV step); 'joint' keeps the joint "
         "solve's albedo and envmaps")
+    pinned_scale: bool = Field(True, description="unknown albedo with pixels of known albedo, method=exact: end the "
+                               "joint solve on the scale those pixels' data alone choose (the envmap priors would "
+                               "shrink it: on issue 29's dark object the support's albedo came out 5-18% bright); "
+                               "false: the minimiser of the objective, scale and all")
     adam_lr: float = Field(0.05, gt=0, description="method=adam: learning rate (on log radiance / logit albedo)")
     adam_seconds: float = Field(60.0, gt=0, description="method=adam: time budget (early stopping), seconds")
     adam_max_iter: int = Field(2000, ge=1, description="method=adam: most iterations")

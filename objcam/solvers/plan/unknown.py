@@ -169,7 +169,7 @@ def joint_setup(scene, data: dict[str, TargetData], params: SolveParams, cams: l
         ls=None if params.auto_reg != "off" else ls_fixed * conv, lr=params.lr * conv,
         lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
         rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=tol, max_iter=params.max_iter,
-        alpha=params.alpha, texel_group=texel_group(params, known=False))
+        alpha=params.alpha, texel_group=texel_group(params, known=False), pinned_scale=params.pinned_scale)
     if with_final:  # its envmaps replace the joint solve's: no final exact x-step there
         setup = dataclasses.replace(setup, polish=False)
     sigma = [s for c in cams for s in c["sigma"] if s is not None] or None
@@ -209,6 +209,8 @@ def unknown_solutions(params: SolveParams, comp, grid: EnvGrid, cams: list[dict]
                 "method": params.method, "albedo": "unknown", "scale_ambiguous": bool(res.scale_ambiguous),
                 "note": SCALE_NOTE if res.scale_ambiguous else SCALE_PINNED_NOTE,
                 "pixels_albedo_known": n_held,
+                # the scale those pixels pin, chosen by their data alone (issue 29; objcam.solvers.joint.scale_step)
+                "pinned_scale": res.info.get("pinned_scale"),
                 "illumination": ill, "cameras_in_problem": len(cams), "illuminations_in_problem": L,
                 "targets_in_problem": [t for cc in cams for t in cc["targets"]],
                 "texels": int(comp.texel_index.size), **basis_rec,
