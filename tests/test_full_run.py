@@ -2,8 +2,8 @@
 goes ingest -> sfm -> geometry -> texture -> probe -> scene -> transport -> solve -> evaluate -> analysis ->
 report. With one photo and every albedo unknown its envmap is unconstrained, which the solve must say (no score is
 asserted); without truth/ evaluate scores it against the chrome-ball probe instead; with the albedo given, the
-envmap must beat bounds that broken answers to the same photos (tests/broken.py) miss. (The benchmark's version, 24 views at 800 x 600 against a known-geometry twin, is
-bench/e2e_bench.py.)"""
+envmap must beat bounds that broken answers to the same photos (tests/broken.py) miss. (The benchmark's version,
+24 views at 800 x 600 against a known-geometry twin, is bench/e2e_bench.py.)"""
 
 from __future__ import annotations
 
