@@ -21,7 +21,7 @@ SSIM_TOL, RMSE_TOL = 0.03, 0.05
 def readme_claims() -> dict[str, float]:
     text = (ROOT / "README.md").read_text()
     m = re.search(r"\(SSIM ([0-9.]+), relative RMSE ([0-9.]+)", text)
-    a = re.search(r"brightest source lands within ([0-9.]+) degrees", text)
+    a = re.search(r"brightest\s+source\s+lands\s+within\s+([0-9.]+)\s+degrees", text)
     assert m and a, "README.md's demo caption no longer states SSIM, relative RMSE and the source's angle"
     return {"ssim": float(m.group(1)), "relative_rmse": float(m.group(2)), "angle": float(a.group(1))}
 
@@ -42,4 +42,8 @@ def test_the_readme_demo_figures_hold(tmp_path):
     m = json.loads((cap / "objcam" / "evaluate" / "metrics.json").read_text())["t0"]
     assert m["ssim"] == pytest.approx(claims["ssim"], abs=SSIM_TOL), m
     assert m["relative_rmse"] == pytest.approx(claims["relative_rmse"], abs=RMSE_TOL), m
-    assert m["brightest_angle_deg"] <= claims["angle"], m
+    assert m["brightest_angle_deg"] <= claims["angle"], m  # measured 0.603, 0.611, 0.08 deg
+    # a test of the test: the truth's own flat and row-mean maps (scored by evaluate on the same mask) fall outside
+    # the tolerance (measured SSIM 0.13 and 0.26)
+    for b in ("constant", "row_mean"):
+        assert m["baselines"][b]["ssim"] < claims["ssim"] - SSIM_TOL, (b, m["baselines"][b])
