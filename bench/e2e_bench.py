@@ -345,8 +345,11 @@ def compare(known: dict, raws: dict) -> list[dict]:
                 ok = r >= 0.9 * k
             else:
                 ok = r <= 1.1 * k or (key == "brightest_angle_deg" and r - k <= ANGLE_SLACK_DEG)
+            # what the truth's constant and row-mean maps score on the raws run's mask (objcam/baselines.py)
+            base = raws[target].get("baselines") or {}
             rows.append({"target": target, "metric": key, "label": label, "known": k, "raws": r, "ratio": ratio,
-                         "within_10pct": bool(ok)})
+                         "within_10pct": bool(ok), "constant": (base.get("constant") or {}).get(key),
+                         "row_mean": (base.get("row_mean") or {}).get(key)})
     return rows
 
 
@@ -389,10 +392,12 @@ def _variant_markdown(res: dict) -> list[str]:
             L += [f"`objcam run` ({run}) exited {rr['rc']}: `{rr.get('error')}`", ""]
     if res.get("compare"):
         L += ["## Envmap metrics: from raws vs known geometry and cameras", "",
-              "| target | metric | known geometry | from raws | ratio | within 10% |", "|---|---|---:|---:|---:|---|"]
+              "| target | metric | known geometry | from raws | ratio | within 10% | constant map | row-mean map |",
+              "|---|---|---:|---:|---:|---|---:|---:|"]
         for r in res["compare"]:
             L.append(f"| {r['target']} | {r['label']} | {r['known']:.4f} | {r['raws']:.4f} | {r['ratio']:.3f} | "
-                     f"{'yes' if r['within_10pct'] else '**no**'} |")
+                     f"{'yes' if r['within_10pct'] else '**no**'} | {_f(r.get('constant'), 4)} | "
+                     f"{_f(r.get('row_mean'), 4)} |")
         L.append("")
         for name in sorted(set(res["metrics_known"]) & set(res["metrics_raws"])):
             k, r = res["metrics_known"][name], res["metrics_raws"][name]
