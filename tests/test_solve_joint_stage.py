@@ -411,8 +411,45 @@ def test_two_cameras_one_illumination_with_the_bounce_refit(tmp_path):
     for t, r in m.items():
         # measured: albedo 0.129 / 0.139 relative RMSE, SSIM 0.83 / 0.84; envmap SSIM 0.695, sun 0 degrees off
         # (one sunrise, 8 x 16; the joint solve's own envmap, solve.final_envmap=joint: 0.38, 9.3 degrees)
-        assert r["albedo_relative_rmse"] < 0.2 and r["albedo_ssim"] > 0.75, (t, r)
+        # the photo itself taken as the albedo scores 0.162 / 0.823 and 0.163 / 0.832: the albedo's SSIM does not
+        # tell them apart, its relative RMSE does, by a thin margin (one illumination: the albedo is constrained
+        # only through the envmap that the two views share)
+        assert r["albedo_relative_rmse"] < ALBEDO_RMSE_TWO_CAMERAS and r["albedo_ssim"] > 0.75, (t, r)
         assert r["ssim"] > 0.6 and r["scale"] == 1.0 and r["brightest_angle_deg"] < 5.0, (t, r)
+    # a test of the test (tests/broken.py): the truth's flat sky and the envmap turned 90 degrees miss the envmap
+    # bounds, the photo taken as the albedo misses the albedo's
+    _broken_answers_miss(cap, cap / "objcam", m, lambda r: r["ssim"] > 0.6 and r["brightest_angle_deg"] < 5.0,
+                         lambda r: r["albedo_relative_rmse"] < ALBEDO_RMSE_TWO_CAMERAS and r["albedo_ssim"] > 0.75)
+
+
+ALBEDO_RMSE_TWO_CAMERAS = 0.15  # measured 0.129 / 0.139; the photo as the albedo 0.162 / 0.163 (was 0.2: passed)
+
+
+def _broken_answers_miss(capture, work, metrics, env_ok, albedo_ok) -> None:
+    """Score the broken answers of every target of ``metrics`` as evaluate does (known scale) and assert each
+    fails ``env_ok`` / ``albedo_ok`` (predicates on a metrics dict) on at least one target."""
+    import cv2
+
+    from objcam.envmap import resample_to_height
+    from objcam.metrics import albedo_metrics, envmap_metrics
+    from objcam.schemas.artifacts import SceneArtifact
+    from objcam.stages.evaluate import truth_albedo_image, truth_envmap_path
+    from objcam.transport import load_transport
+    from tests.broken import read_envmap, rotated, truth_constant
+
+    scene = SceneArtifact.load(work / "scene")
+    flat, turned, photo = [], [], []
+    for t in metrics:
+        est, mask = read_envmap(work, t)
+        truth = resample_to_height(read_exr(truth_envmap_path(capture, t))[..., :3].astype(np.float64), est.shape[0])
+        flat.append(env_ok(envmap_metrics(truth_constant(truth, mask), truth, mask)))
+        turned.append(env_ok(envmap_metrics(rotated(est, mask, 90.0), truth, mask)))
+        d = work / "solve" / t
+        amask = cv2.imread(str(d / "albedo_mask.png"), cv2.IMREAD_UNCHANGED) > 127
+        true_alb = truth_albedo_image(capture, scene.folder, load_transport(work / "transport", t))
+        photo.append(albedo_ok(albedo_metrics(read_exr(d / "target.exr")[..., :3].astype(np.float64), true_alb,
+                                              amask)))
+    assert not all(flat) and not all(turned) and not all(photo), (flat, turned, photo)
 
 
 def test_the_subsampled_first_solve_gives_every_pixel_the_albedo_of_its_least_squares():
