@@ -11,7 +11,7 @@ DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true --tar
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz bench-gi status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -49,7 +49,9 @@ test: $(STAMP)
 #   hard      the hard-case suite: lighting, objects, cameras and noise the core bench never saw, rendered by its
 #             own Mitsuba scene (issue 22; ~17 min the first time, ARGS=--quick ~1 min)
 #   fuzz      2,000 generated hostile captures through the CLI: tracebacks, hangs, writes outside (issue 24; ~3 min)
-BENCH ?= core analysis joint probe geometry e2e hard fuzz
+#   gi        the default A against path-traced columns with interreflections, from a scene objcam did not write
+#             (issue 28; ~25 min, ARGS=--quick ~1 min)
+BENCH ?= core analysis joint probe geometry e2e hard fuzz gi
 bench: $(addprefix bench-,$(BENCH))
 bench-core: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
@@ -67,6 +69,8 @@ bench-hard: $(STAMP)
 	$(BIN)/python -m bench.hard --write $(ARGS)
 bench-fuzz: $(STAMP)
 	$(BIN)/python -m bench.fuzz_bench --write $(ARGS)
+bench-gi: $(STAMP)
+	$(BIN)/python -m bench.gi_reference --write $(ARGS)
 
 # occluder design: bunny, sphere and coded mask (plus any --mesh FILE in ARGS) compared on one setup
 DESIGN_OUT ?= demo/design

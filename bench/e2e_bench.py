@@ -290,14 +290,19 @@ def _last_error(log: Path) -> str | None:
     return lines[-1] if lines else None
 
 
-def stage_records(work: Path) -> dict[str, dict]:
+def stage_records(work: Path, since: float | None = None) -> dict[str, dict]:
+    """Each stage's record; ``cached`` (with ``since``, a time.time() before the run): the stage was found in the
+    cache, so its seconds are an earlier run's (bench/provenance.py)."""
+    from bench.provenance import stage_time
+
     out = {}
     for s in STAGES:
         p = work / s / "stage.json"
         if p.is_file():
             d = json.loads(p.read_text())
             out[s] = {"seconds": d.get("wall_seconds"), "load": d.get("load_average"), "summary": d.get("summary"),
-                      "metrics": d.get("metrics"), "peak_rss_mb": d.get("peak_rss_mb")}
+                      "metrics": d.get("metrics"), "peak_rss_mb": d.get("peak_rss_mb"),
+                      "cached": None if since is None else stage_time(work, s, since)["cached"]}
     return out
 
 
@@ -340,8 +345,11 @@ def compare(known: dict, raws: dict) -> list[dict]:
                 ok = r >= 0.9 * k
             else:
                 ok = r <= 1.1 * k or (key == "brightest_angle_deg" and r - k <= ANGLE_SLACK_DEG)
+            # what the truth's constant and row-mean maps score on the raws run's mask (objcam/baselines.py)
+            base = raws[target].get("baselines") or {}
             rows.append({"target": target, "metric": key, "label": label, "known": k, "raws": r, "ratio": ratio,
-                         "within_10pct": bool(ok)})
+                         "within_10pct": bool(ok), "constant": (base.get("constant") or {}).get(key),
+                         "row_mean": (base.get("row_mean") or {}).get(key)})
     return rows
 
 
@@ -384,10 +392,12 @@ def _variant_markdown(res: dict) -> list[str]:
             L += [f"`objcam run` ({run}) exited {rr['rc']}: `{rr.get('error')}`", ""]
     if res.get("compare"):
         L += ["## Envmap metrics: from raws vs known geometry and cameras", "",
-              "| target | metric | known geometry | from raws | ratio | within 10% |", "|---|---|---:|---:|---:|---|"]
+              "| target | metric | known geometry | from raws | ratio | within 10% | constant map | row-mean map |",
+              "|---|---|---:|---:|---:|---|---:|---:|"]
         for r in res["compare"]:
             L.append(f"| {r['target']} | {r['label']} | {r['known']:.4f} | {r['raws']:.4f} | {r['ratio']:.3f} | "
-                     f"{'yes' if r['within_10pct'] else '**no**'} |")
+                     f"{'yes' if r['within_10pct'] else '**no**'} | {_f(r.get('constant'), 4)} | "
+                     f"{_f(r.get('row_mean'), 4)} |")
         L.append("")
         for name in sorted(set(res["metrics_known"]) & set(res["metrics_raws"])):
             k, r = res["metrics_known"][name], res["metrics_raws"][name]
@@ -403,7 +413,8 @@ def _variant_markdown(res: dict) -> list[str]:
               "| stage | seconds | load at start | summary |", "|---|---:|---:|---|"]
         for s, r in recs.items():
             summ = (r.get("summary") or "").replace("|", "/").replace("\n", " ")
-            L.append(f"| {s} | {_f(r['seconds'], 1)} | {_f(r['load'], 2)} | {summ[:160]} |")
+            secs = _f(r["seconds"], 1) + (" (cached)" if r.get("cached") else "")  # an earlier run's time
+            L.append(f"| {s} | {secs} | {_f(r['load'], 2)} | {summ[:160]} |")
         tot = sum(r["seconds"] or 0 for r in recs.values())
         L += [f"| total | {tot:.1f} | | |", ""]
     if res.get("cameras"):
@@ -438,11 +449,12 @@ def run_variant(cap: Path, root: Path, v: str, sets: list[str], log: Path, no_kn
     """``objcam run`` from the raws of ``cap`` and of its known-geometry twin; the numbers of one variant."""
     res: dict = {"capture": str(cap)}
     work_raws = root / f"work_raws_{v}"
+    since = time.time()
     rc, secs, load = objcam_run(cap, work_raws, sets, log)
     res["run_raws"] = {"rc": rc, "seconds": round(secs, 1), "load_at_start": load}
     if rc != 0:
         res["run_raws"]["error"] = _last_error(log)
-    res["stages_raws"] = stage_records(work_raws)
+    res["stages_raws"] = stage_records(work_raws, since)
     if (work_raws / "sfm" / "stage.json").is_file():
         res["cameras"] = camera_errors(cap, work_raws)
         st = res["stages_raws"]
@@ -455,9 +467,10 @@ def run_variant(cap: Path, root: Path, v: str, sets: list[str], log: Path, no_kn
         print(f"objcam run from raws failed (exit {rc}); see {log}", file=sys.stderr)
     if not no_known and (work_raws / "ingest" / "stage.json").is_file():
         known = known_capture(cap, work_raws, root / f"known_{v}")
+        since_k = time.time()
         rc_k, secs_k, load_k = objcam_run(known, root / f"work_known_{v}", sets, log)
         res["run_known"] = {"rc": rc_k, "seconds": round(secs_k, 1), "load_at_start": load_k}
-        res["stages_known"] = stage_records(root / f"work_known_{v}")
+        res["stages_known"] = stage_records(root / f"work_known_{v}", since_k)
         metrics_known = root / f"work_known_{v}" / "evaluate" / "metrics.json"
         if metrics_raws.is_file() and metrics_known.is_file():
             mk, mr = json.loads(metrics_known.read_text()), json.loads(metrics_raws.read_text())
@@ -509,6 +522,8 @@ def main(argv: list[str] | None = None) -> int:
         res["variants"][v] = run_variant(cap_v, root, v, vsets, log, a.no_known)
     res["load_at_end"] = loadavg()
     (root / "results.json").write_text(json.dumps(res, indent=2, default=str))
+    if a.write:  # the raw rows behind the block, committed beside results.md
+        Path("bench/e2e_rows.json").write_text(json.dumps(res, indent=1, default=str) + "\n")
     md = markdown(res)
     (root / "results.md").write_text(md + "\n")
     print(md)

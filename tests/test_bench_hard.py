@@ -97,6 +97,8 @@ def test_a_tiny_case_is_a_capture_objcam_runs(tmp_path):
         assert r["status"] == "ok", r["error"]
         # the lamp, 30 degrees up at azimuth 30: measured 0.7-1.0 degrees off (one solve texel is 5.6)
         assert r["brightest_angle_deg"] < 6.0, r
+        # a test of the test: the truth's flat and row-mean maps, scored on the same mask, miss it (measured 59 deg)
+        assert min(r["baselines"][b]["brightest_angle_deg"] for b in ("constant", "row_mean")) >= 6.0, r
         assert set(r["baselines"]) == {"constant", "row_mean"} and len(r["band_energy"]) == 4
 
 

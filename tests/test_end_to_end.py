@@ -1,5 +1,7 @@
 """End to end on a small synthetic scene: `objcam synth` then `objcam run` through the real CLI, with asserted
-bounds against the known truth (sun direction, irradiance, fit), the cache on a second run, and exact vs paper."""
+bounds against the known truth (sun direction, irradiance, relative RMSE, fit), the cache on a second run, and
+exact vs paper. Every bound is also run on deliberately broken answers to the same scene, which must fail it
+(tests/broken.py: a flat sky, the estimate rotated, a solve drowned in its prior, one shadow ray per pixel)."""
 
 from __future__ import annotations
 
@@ -45,13 +47,84 @@ def test_outputs_exist_and_are_consistent(capture):
     assert np.all(env[~mask] == 0)
 
 
-def test_recovers_the_sun_and_the_irradiance(capture):
-    metrics = json.loads((capture / "objcam" / "evaluate" / "metrics.json").read_text())["t0"]
-    assert metrics["brightest_angle_deg"] < 6.0  # measured 3.8 deg at this size and noise
-    est = read_exr(capture / "objcam" / "solve" / "t0" / "envmap.exr")[..., :3].astype(float)
-    truth = resample_to_height(read_exr(capture / "truth" / "envmap.exr")[..., :3].astype(float), 32)
+# The accuracy bounds of this scene (sunrise, 64 x 64 px at 256 spp, direct A, 32 x 64 envmap), each between the
+# default's measured value and the broken answers' (test_a_broken_answer_fails_the_bounds):
+SUN_DEG = 6.0  # default 0.0 deg; a flat sky 82, the estimate turned 90 degrees 89
+IRRADIANCE_TOL = 0.05  # default within 2.7%; a flat sky of the truth's mean radiance 2.4x
+# default 6.7; solve.ls=100 18.5, prior=smooth at ls=1 18.4, one shadow ray and one camera ray per pixel 14.9, a
+# flat sky 18.8, the truth's row means 18.7, turned 90 degrees 24.0. (SSIM does not separate them here: the default
+# scores 0.09, a flat sky 0.43 and the row-mean map 0.69, since the sun dominates the linear error and SSIM of the
+# tonemapped maps rewards the smooth sky; bench/results.md reports both beside their baselines.)
+REL_RMSE_MAX = 10.0
+
+
+def truth32(capture: Path) -> np.ndarray:
+    return resample_to_height(read_exr(capture / "truth" / "envmap.exr")[..., :3].astype(float), 32)
+
+
+def missed_bounds(est: np.ndarray, mask: np.ndarray, truth: np.ndarray, residual: float | None = None,
+                  noise_sigma: float | None = None) -> list[str]:
+    """The accuracy bounds (above) that the envmap ``est`` (32, 64, 3) on its solved texels ``mask`` misses
+    against ``truth``; with ``residual`` the solve's relative image residual against 3 sigma + 0.05 too."""
+    from objcam.metrics import envmap_metrics
+
+    m = envmap_metrics(est, truth, mask)
     ratio = irradiance(est) / irradiance(truth)
-    assert np.all(np.abs(ratio - 1.0) < 0.05), ratio  # measured within 0.6%
+    missed = []
+    if not m["brightest_angle_deg"] < SUN_DEG:
+        missed.append("sun")
+    if not np.all(np.abs(ratio - 1.0) < IRRADIANCE_TOL):
+        missed.append("irradiance")
+    if not m["relative_rmse"] < REL_RMSE_MAX:
+        missed.append("relative_rmse")
+    # the fit explains the image down to its noise plus the interreflections the direct model leaves out
+    if residual is not None and not residual < 3 * noise_sigma + 0.05:
+        missed.append("residual")
+    return missed
+
+
+def test_recovers_the_sun_the_irradiance_and_the_map(capture):
+    from tests.broken import read_envmap
+
+    metrics = json.loads((capture / "objcam" / "evaluate" / "metrics.json").read_text())["t0"]
+    est, mask = read_envmap(capture / "objcam")
+    assert missed_bounds(est, mask, truth32(capture)) == [], metrics
+    assert metrics["relative_rmse"] < REL_RMSE_MAX  # evaluate scores the same map
+
+
+# (broken answer, the bounds it must miss at least one of; measured)
+BROKEN = {
+    "flat sky of the truth's mean": ("sun", "irradiance", "relative_rmse"),  # 82 deg, 2.4x, 18.8
+    "estimate turned 90 degrees": ("sun", "relative_rmse"),  # 89 deg, 24.0 (irradiance kept: it is a turn)
+    "solve.ls=100": ("relative_rmse",),  # 18.5 (sun 4.2 deg and irradiance within 4.1%: both pass)
+    "solve.ls=1e6": ("sun", "irradiance", "relative_rmse", "residual"),  # 77 deg, 1.14x, 18.8, residual 0.50
+    "solve.prior=smooth, solve.ls=1": ("relative_rmse",),  # 18.4 (sun 2.4 deg, irradiance within 0.6%)
+    "transport.samples=1, transport.subpixel_samples=1": ("relative_rmse",),  # 14.9 (sun 2.5, within 3%)
+}
+
+
+@pytest.mark.parametrize("broken", list(BROKEN))
+def test_a_broken_answer_fails_the_bounds(capture, tmp_path, broken):
+    """A test of the test: the bounds above, run on a broken answer to the same scene, are missed."""
+    import tomllib
+
+    from tests.broken import read_envmap, rerun, rotated, solve_info, truth_constant
+
+    truth = truth32(capture)
+    sigma = tomllib.loads((capture / "capture.toml").read_text())["targets"][0]["noise_sigma"]
+    est, mask = read_envmap(capture / "objcam")
+    residual = None
+    if broken.startswith("flat"):
+        est = truth_constant(truth, mask)
+    elif broken.startswith("estimate turned"):
+        est = rotated(est, mask, 90.0)
+    else:
+        sets = ["transport.model=direct"] + [s.strip() for s in broken.split(",")]
+        work = rerun(capture, capture / "objcam", tmp_path / "work", sets)
+        est, mask = read_envmap(work)
+        residual = solve_info(work)["relative_image_residual"]
+    missed = missed_bounds(est, mask, truth, residual, sigma)
+    assert set(BROKEN[broken]) & set(missed), (broken, missed)
 
 
 def test_evaluate_reports_the_baselines_beside_each_score(capture):
@@ -77,11 +150,16 @@ def test_evaluate_reports_the_baselines_beside_each_score(capture):
 
 
 def test_solve_is_exact_and_fits_the_image(capture):
+    from tests.broken import read_envmap
+
     info = json.loads((capture / "objcam" / "solve" / "t0" / "solve.json").read_text())
     assert info["kkt_residual_max"] < 1e-8
     truth = json.loads((capture / "truth" / "truth.json").read_text())["targets"]["t0"]
-    # the fit explains the image down to its noise plus the interreflections the direct model leaves out
-    assert info["relative_image_residual"] < 3 * truth["noise_sigma"] + 0.05
+    # the fit explains the image down to its noise plus the interreflections the direct model leaves out (measured
+    # 0.066 against 0.133; solve.ls=1e6 leaves 0.50: test_a_broken_answer_fails_the_bounds)
+    est, mask = read_envmap(capture / "objcam")
+    assert "residual" not in missed_bounds(est, mask, truth32(capture), info["relative_image_residual"],
+                                           truth["noise_sigma"])
 
 
 def test_second_run_is_cached_and_status_done(capture, capsys):
@@ -177,10 +255,8 @@ def test_supersampled_transport(capture, tmp_path, capsys):
     assert info["ls_relative"] == pytest.approx(float(np.clip(EDGE_LS_PER_SIGMA_SUPERSAMPLED * sigma, *LS_RANGE)))
     metrics = json.loads((work / "evaluate" / "metrics.json").read_text())["t0"]
     default = json.loads((capture / "objcam" / "evaluate" / "metrics.json").read_text())["t0"]
-    assert metrics["brightest_angle_deg"] < 6.0
-    truth = resample_to_height(read_exr(capture / "truth" / "envmap.exr")[..., :3].astype(float), 32)
-    ratio = irradiance(env.astype(float)) / irradiance(truth)
-    assert np.all(np.abs(ratio - 1.0) < 0.05), ratio
+    # the default's bounds (sun, irradiance, relative RMSE), which the broken answers miss
+    assert missed_bounds(env.astype(float), mask, truth32(capture)) == [], metrics
     # sunrise's sun inside one 32 x 64 texel: measured relative RMSE 5.06 against the default's 6.70, SSIM 0.101
     # against 0.089 (both low: 64 x 64 pixels at 256 spp, the direct A missing the interreflections)
     assert metrics["relative_rmse"] < 0.9 * default["relative_rmse"], (metrics, default)

@@ -3,6 +3,8 @@ sphere, its node grid, and its columns against Mitsuba's path tracer (light of t
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -80,15 +82,28 @@ def test_columns_match_path_traced_indirect_light(scene, max_depth, max_nodes):
     assert cols.shape == (s.pixel_index.size, texels.size) and np.all(cols >= 0)
     pr = PathRenderer(geo, cam, 1, s.pixel_index, ENV_H)
     spp = 512
+    # a test of the test: at max_depth 6 the columns of a gather with one bounce (max_depth 3) miss the bound
+    # (measured 32-40%). One bounce short (max_depth 5) is 3-5% off and passes on some scenes: the 5% bound
+    # cannot see the last of four bounces
+    short = GatherIndirect(geo, s, texels, ENV_H, 1, dataclasses.replace(gs, max_depth=3)) \
+        if max_depth == 6 else None
+    short_errs = []
     for b, j in enumerate(texels):
         env = pr.onehot([j])
         r1 = indirect_render(pr, env, spp, max_depth, seed=11, scale=1).mean(axis=1)
         r2 = indirect_render(pr, env, spp, max_depth, seed=12, scale=1).mean(axis=1)
         ref = 0.5 * (r1 + r2)
         noise = np.linalg.norm(r1 - r2) / 2
-        err = np.sqrt(max(np.linalg.norm(cols[:, b] - ref) ** 2 - noise**2, 0.0)) / np.linalg.norm(ref)
+
+        def col_err(col):
+            return np.sqrt(max(np.linalg.norm(col - ref) ** 2 - noise**2, 0.0)) / np.linalg.norm(ref)
+
+        err = col_err(cols[:, b])
         assert err < 0.05, (j, err, noise / np.linalg.norm(ref))
         assert cols[:, b].sum() == pytest.approx(ref.sum(), rel=0.03)
+        if short is not None:
+            short_errs.append(col_err(short.columns(b, b + 1)[0][:, 0]))
+    assert short is None or max(short_errs) >= 0.05, short_errs
     # deterministic: the same settings give the same columns
     again = GatherIndirect(geo, s, texels, ENV_H, 1, gs).columns(0, texels.size)[0]
     assert np.array_equal(cols, again)

@@ -147,6 +147,14 @@ def test_joint_recovers_albedo_and_envmaps(scene, solved):
     assert np.all(ev["env_rel_rmse"] < 4.0 * ek["env_rel_rmse"])
     # scales of x and rho are reciprocal up to the estimation error
     assert np.allclose(ev["scale_product"], 1.0, atol=0.3)
+    # a test of the test: flat envmaps (each target's true mean per channel), the envmaps swapped between targets
+    # and a flat albedo (its true mean) miss the bounds above (measured: the estimate 0.30-0.34 and 0.012; flat
+    # envmaps 0.64-0.66, swapped 0.87 / 0.41 / 0.85 (the middle one is itself), flat albedo 0.27)
+    flat_x = np.broadcast_to(x_true.mean(axis=0, keepdims=True), x_true.shape)
+    flat_rho = [np.broadcast_to(rt.mean(axis=0, keepdims=True), rt.shape) for rt in rho_true]
+    assert not np.all(evaluate_joint(flat_x, r.rho, x_true, rho_true, grid, keep)["env_rel_rmse"] < 0.45)
+    assert not np.all(evaluate_joint(r.x[:, ::-1], r.rho, x_true, rho_true, grid, keep)["env_rel_rmse"] < 0.45)
+    assert not evaluate_joint(r.x, flat_rho, x_true, rho_true, grid, keep)["rho_rel_rmse"] < 0.05
 
 
 def test_objective_is_monotone_and_both_subproblems_are_optimal(scene, solved):

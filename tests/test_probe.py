@@ -145,6 +145,13 @@ def test_unwrap_matches_the_envmap(scenes, fits, env):
     assert relative_rmse(est, truth, rest) < 0.2  # measured 0.15 (forest), 0.06 (sunrise)
     if env == "forest":  # whole map; sunrise's (2.5-3.7) is the MC noise on its sun texel, 1000x the mean
         assert relative_rmse(est, truth, valid) < 0.5  # measured 0.33 (0.46 with another seed)
+    # a test of the test (tests/broken.py): the estimate turned 90 degrees and the truth's flat sky miss the bounds
+    # (measured: turned 82 / 89 deg and 3.4 / 52 away from the sun; flat 1.8 / 3.0)
+    from tests.broken import rotated, truth_constant
+
+    turned, flat = rotated(est, valid, 90.0), truth_constant(truth, valid)
+    assert brightest_angle_deg(turned, truth, valid) >= 2.0 and relative_rmse(turned, truth, rest) >= 0.2
+    assert relative_rmse(flat, truth, rest) >= 0.2
 
 
 def test_perspective_beats_orthographic_close_up():

@@ -135,6 +135,12 @@ def test_stage_recovers_the_envmap(courtyard, courtyard_out):
     err = relative_rmse(est, truth, valid)
     assert err < 0.15, err  # measured 0.09 (0.02-0.04 at 1400 px, bench/probe_bench.py)
     assert brightest_angle_deg(est, truth, valid) < 2.0  # measured 0.06 deg
+    # a test of the test (tests/broken.py): the truth's flat sky and the estimate turned 90 degrees miss both
+    from tests.broken import rotated, truth_constant
+
+    for broken in (truth_constant(truth, valid), rotated(est, valid, 90.0)):
+        assert relative_rmse(broken, truth, valid) > 1.0  # measured 3.3 / 4.6 (the sun dominates the error)
+    assert brightest_angle_deg(rotated(est, valid, 90.0), truth, valid) > 45.0  # measured 89 (flat sky: 28)
     # the camera's own reflection is masked: the texel towards the camera is invalid
     to_cam = r.camera.centre - r.centre
     row, col = EnvGrid(32).texel_of(to_cam / np.linalg.norm(to_cam))

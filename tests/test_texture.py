@@ -32,9 +32,38 @@ def test_support_albedo_against_board(texture_run, photo_capture):  # noqa: F811
     # the print's albedo (paper 0.8, ink 0.05) recovered from 12 noisy views: measured median 0.049 over the
     # board, 0.061 on plain paper (cast shadows stay baked in and pull the paper down near the object)
     assert err.support_median < 0.065 and err.paper_median < 0.08, err
+    # the board is mostly paper, so a median alone passes a flat paper-white albedo (0.0 / 0.0): the 90th
+    # percentile must see the ink too (measured 0.24; flat paper 0.75, the albedo's mean 0.46, turned 90 degrees
+    # 0.75: test_a_broken_support_albedo_fails_the_bounds)
+    assert err.support_p90 < SUPPORT_P90_MAX, err
     # the object's albedo assumes the open plane's irradiance, too much for its flanks: measured -0.24 (0.36 for
     # 0.6). This is an honest first rho for the joint solve, not an albedo measurement.
     assert -0.3 < err.object_bias < 0.0, err
+
+
+SUPPORT_P90_MAX = 0.4
+
+
+@pytest.mark.parametrize("broken", ["flat paper white", "flat mean", "turned 90 degrees"])
+def test_a_broken_support_albedo_fails_the_bounds(texture_run, photo_capture, tmp_path, broken):  # noqa: F811
+    """A test of the test: the texture stage's support albedo replaced by a broken one misses the bounds above.
+    (Mirrored rows or columns are NOT caught: the board's 13 x 9 squares map onto squares of their own colour, and
+    only the markers differ; measured median 0.047, p90 0.22 for the rows reversed.)"""
+    import shutil
+
+    from objcam.image_io import read_exr, write_exr
+    from objcam.synth.geometry_inputs import albedo_error
+
+    out, _ = texture_run
+    for name in ("texture.json", "confidence_support.exr", "albedo_object.exr", "confidence_object.exr"):
+        shutil.copy(out / name, tmp_path / name)
+    est = read_exr(out / "albedo_support.exr")
+    alt = {"flat paper white": lambda: np.full_like(est, 0.8),
+           "flat mean": lambda: np.broadcast_to(est.mean(axis=(0, 1)), est.shape).copy(),
+           "turned 90 degrees": lambda: np.rot90(est).copy()}[broken]()
+    write_exr(tmp_path / "albedo_support.exr", alt)
+    err = albedo_error(tmp_path, photo_capture.truth)
+    assert not (err.support_median < 0.065 and err.paper_median < 0.08 and err.support_p90 < SUPPORT_P90_MAX), err
 
 
 def test_contract_files(texture_run, geometry_run):  # noqa: F811

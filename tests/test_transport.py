@@ -171,9 +171,16 @@ def test_direct_agrees_with_path_traced_direct_light(model):
         r2 = pr.render(env, 128, 2, seed=2)[:, 0]
         ref = 0.5 * (r1 + r2)
         noise = np.linalg.norm(r1 - r2) / 2
-        err = np.sqrt(max(np.linalg.norm(a - ref) ** 2 - noise**2, 0.0)) / np.linalg.norm(ref)
-        assert err < 0.02 + 2 * noise / np.linalg.norm(ref), (j, err, noise / np.linalg.norm(ref))
+        def col_err(col):
+            return np.sqrt(max(np.linalg.norm(col - ref) ** 2 - noise**2, 0.0)) / np.linalg.norm(ref)
+
+        bound = 0.02 + 2 * noise / np.linalg.norm(ref)
+        assert col_err(a) < bound, (j, col_err(a), noise / np.linalg.norm(ref))
         assert grid.n_texels == 2 * ENV_H * ENV_H
+        # a test of the test: the next texel's column (a texel convention off by one) and the column a factor pi
+        # off (radiance against irradiance units) miss the bound
+        assert col_err(dm.columns(np.array([j + 1]))[0, :, 0]) > bound, j
+        assert col_err(a / np.pi) > bound and col_err(a * np.pi) > bound, j
 
 
 def _camera_of(model):
