@@ -319,6 +319,24 @@ def test_indirect_effect_scales_with_pixels_and_noise():
     assert indirect_effect(direct, indirect, noise=0.0) == (0.0, float("inf"))
 
 
+def test_pinned_scale_effect_catches_a_bias_the_whole_image_hides():
+    """Issue 29: a few pixels of known albedo pin an unknown albedo's scale; indirect light on them (a dark object
+    lit by a bright support) biases that scale although the whole image's chi-squared cannot see it."""
+    from objcam.transport.auto import AUTO_EFFECT_Z, indirect_effect, pinned_scale_effect
+
+    direct = np.ones((4000, 3))
+    pins = np.zeros(4000, bool)
+    pins[:200] = True
+    indirect = np.where(pins[:, None], 0.05, 0.0)  # 5% more light on the pinning pixels only
+    eff, thr = indirect_effect(direct, indirect, noise=0.1)
+    assert eff < thr  # 600 values off by half the noise: within the chi-squared's spread over 12,000
+    z2, zthr = pinned_scale_effect(direct, indirect, noise=0.1, pins=pins)
+    assert zthr == AUTO_EFFECT_Z**2
+    assert z2 == pytest.approx((0.05 / (0.1 / np.sqrt(600))) ** 2) and z2 > zthr  # a 12-sigma bias of the scale
+    assert pinned_scale_effect(direct, indirect, 0.1, np.zeros(4000, bool)) == (0.0, float("inf"))
+    assert pinned_scale_effect(direct, 0.0 * indirect, 0.1, pins)[0] == 0.0
+
+
 def test_path_model_with_direct_light_only_matches_direct(art, tmp_path):
     folder, _ = art
     m = _run(folder, tmp_path / "p", model="path", path_spp=64, path_max_depth=2, downsample=2)

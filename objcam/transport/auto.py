@@ -7,7 +7,8 @@ I out of A moves the solve by ``||I||^2 / sigma^2`` in whitened units (chi-squar
 (the part of I no envmap explains) and the envmap (the part it absorbs: a shift of the recovered light measured
 against the solve's own uncertainty). It is compared with the chi-squared's own spread over M pixel values,
 ``sqrt(2 M)``: the indirect light is modelled when its effect exceeds ``AUTO_EFFECT_Z`` times that spread
-(:func:`indirect_effect`).
+(:func:`indirect_effect`), or when pixels of known albedo pin an unknown albedo's scale and the indirect light
+biases that scale by more than ``AUTO_EFFECT_Z`` times its noise (:func:`pinned_scale_effect`).
 
 Indirect light of a column is measured as render(max_depth=D) - render(max_depth=2) with the same seed: both
 renders draw the same random numbers for the camera ray and the first vertex, so their difference holds only
@@ -84,6 +85,28 @@ def indirect_effect(direct: np.ndarray, indirect: np.ndarray, noise: float) -> t
     return effect, AUTO_EFFECT_Z * float(np.sqrt(2.0 * direct.size))
 
 
+def pinned_scale_effect(direct: np.ndarray, indirect: np.ndarray, noise: float,
+                        pins: np.ndarray) -> tuple[float, float]:
+    """(squared z, threshold) of the bias the indirect light puts on an unknown albedo's scale when pixels of known
+    albedo (``pins`` (M,) bool) fix it: without the indirect light the known pixels look too dark by
+    ``b = sum(p I) / sum(p^2)`` (p the direct image there), which the joint solve passes on to the envmap's scale
+    and every unknown albedo; the scale's own noise is ``sigma_abs / sqrt(sum(p^2))``. A bias of a few percent
+    hides in the whole image's chi-squared (the known pixels are few) but shifts every albedo (issue 29: a dark
+    object on a bright support, 7-26% of its light thrown by the support). Returns ((b / sigma_c)^2,
+    AUTO_EFFECT_Z^2); (0, inf) without pins."""
+    pins = np.asarray(pins, bool)
+    if not pins.any() or pins.all() or noise <= 0:
+        return 0.0, float("inf")
+    p, i = np.asarray(direct, np.float64)[pins], np.asarray(indirect, np.float64)[pins]
+    pp = float(np.sum(p * p))
+    pos = direct[direct > 0]
+    if pp <= 0 or pos.size == 0:
+        return 0.0, float("inf")
+    b = float(np.sum(p * i)) / pp
+    sigma_c = noise * float(np.median(pos)) / np.sqrt(pp)
+    return (b / sigma_c) ** 2, AUTO_EFFECT_Z**2
+
+
 @dataclass
 class AutoReport:
     relative_indirect: float  # ||sum_s indirect_s|| / ||sum_s direct_s|| over the sampled columns, noise-corrected
@@ -96,11 +119,16 @@ class AutoReport:
     effect_chi2: float = 0.0  # leaving the indirect light out: its chi-squared effect (indirect_effect)
     threshold_chi2: float = 0.0  # ... and the threshold it is compared with
     seconds: float = 0.0
+    pinned_effect: float = 0.0  # (scale bias / its noise)^2 where known pixels pin an unknown albedo's scale
+    pinned_threshold: float = float("inf")
 
     @property
     def margin(self) -> float:
-        """effect / threshold: > 1 models the indirect light; near 1 the choice is close."""
-        return self.effect_chi2 / self.threshold_chi2 if self.threshold_chi2 > 0 else 0.0
+        """The larger of effect / threshold over both tests (the whole fit, the pinned scale): > 1 models the
+        indirect light; near 1 the choice is close."""
+        fit = self.effect_chi2 / self.threshold_chi2 if self.threshold_chi2 > 0 else 0.0
+        pin = self.pinned_effect / self.pinned_threshold if np.isfinite(self.pinned_threshold) else 0.0
+        return max(fit, pin)
 
     def metrics(self) -> dict:
         return {"auto_relative_indirect": round(self.relative_indirect, 6),
@@ -109,6 +137,8 @@ class AutoReport:
                 "auto_target_noise": round(self.target_noise, 6), "auto_noise_source": self.noise_source,
                 "auto_effect_chi2": round(self.effect_chi2, 3), "auto_threshold_chi2": round(self.threshold_chi2, 3),
                 "auto_margin": round(self.margin, 4),
+                **({"auto_pinned_scale_z2": round(self.pinned_effect, 3)} if np.isfinite(self.pinned_threshold)
+                   else {}),
                 "auto_columns": self.columns, "auto_choice": self.choice, "auto_seconds": round(self.seconds, 3)}
 
 
@@ -144,7 +174,7 @@ def detail_pixels(object_fraction: np.ndarray, pixel_index: np.ndarray, shape: t
 
 
 def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: int, max_depth: int, seed: int,
-            scale: int, target_noise: float, noise_source: str) -> AutoReport:
+            scale: int, target_noise: float, noise_source: str, pins: np.ndarray | None = None) -> AutoReport:
     """Measure the indirect light of columns ``texels`` against their direct light (C, M, S) and decide by its
     effect on the fit (:func:`indirect_effect`) at ``target_noise`` (relative, per fitted pixel)."""
     import time
@@ -175,9 +205,11 @@ def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: 
     raw = float(np.linalg.norm(mean))
     indirect = mean * (np.sqrt(bias2) / raw if raw > 0 else 0.0)
     effect, threshold = indirect_effect(d.sum(axis=2), indirect, target_noise)
-    choice = "direct+indirect" if effect > threshold else "direct"
+    pin, pin_thr = (0.0, float("inf")) if pins is None else pinned_scale_effect(d.sum(axis=2), indirect,
+                                                                               target_noise, pins)
+    choice = "direct+indirect" if effect > threshold or pin > pin_thr else "direct"
     return AutoReport(rel, noise, float(np.median(per)) if per else 0.0, float(target_noise), noise_source,
-                      int(len(texels)), choice, effect, threshold, time.perf_counter() - t0)
+                      int(len(texels)), choice, effect, threshold, time.perf_counter() - t0, pin, pin_thr)
 
 
 class IndirectCorrection:

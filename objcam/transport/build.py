@@ -156,8 +156,9 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
         pr = PathRenderer(geo, camera, f, samples.pixel_index, s.env_height)
         pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height)
         sample_tex = texel_index[pos]
+        unknown = parts.unknown_albedo()
         rep = measure(pr, dm.columns(sample_tex), sample_tex, s.auto_spp, s.auto_max_depth, s.seed,
-                      s.correction_scale, noise, source)
+                      s.correction_scale, noise, source, pins=~unknown if unknown.any() else None)
         metrics.update(rep.metrics())
         chosen = rep.choice
         if pr.column_offset:
