@@ -208,9 +208,11 @@ BROKEN = {
     "flat sky of the truth's mean": "SSIM 0.340, 78.8 deg",
     "estimate turned 90 degrees": "SSIM 0.203, 66.4 deg",
     "solve.ls=1e6": "SSIM 0.339, 78.7 deg",
-    "transport.samples=1, transport.subpixel_samples=1, transport.object_samples=1, "
-    "transport.object_subpixel_samples=1": "SSIM 0.526, 17.2 deg",
 }
+# Not a broken answer here: one ray per pixel (the four transport sample counts at 1) scored SSIM 0.526 before
+# session 14 and 0.730 after (interreflections modelled, the row below the horizon not solved): on this 8 x 16
+# envmap over 2 x 2-pooled pixels the rays' noise averages out; tests/test_end_to_end.py keeps it as a broken
+# answer on a finer grid, where it misses (relative RMSE 15-19 against 6.7).
 
 
 @pytest.mark.parametrize("broken", list(BROKEN))
