@@ -113,10 +113,11 @@ def emitted_power(bitmap: np.ndarray, height: int, row: int, col: int, k: int = 
     return float(w.sum()), m / max(np.linalg.norm(m), 1e-30)
 
 
-def choose_texels(height: int, n: int, seed: int) -> list[tuple[int, int]]:
-    """n distinct texels (row, col) of the upper hemisphere (rows whose centre is above the horizon), drawn
-    uniformly with ``seed``: the rule never looks at A."""
-    rows = [r for r in range(height) if math.pi * (r + 0.5) / height < math.pi / 2]
+def choose_texels(height: int, n: int, seed: int, only_rows: list[int] | None = None) -> list[tuple[int, int]]:
+    """n distinct texels (row, col) of the upper hemisphere (rows whose centre is above the horizon; ``only_rows``:
+    those rows only, e.g. the two at the horizon), drawn uniformly with ``seed``: the rule never looks at A."""
+    rows = [r for r in range(height) if math.pi * (r + 0.5) / height < math.pi / 2
+            and (only_rows is None or r in only_rows)]
     cells = [(r, c) for r in rows for c in range(2 * height)]
     pick = np.random.default_rng(seed).choice(len(cells), size=min(n, len(cells)), replace=False)
     return [cells[i] for i in sorted(pick)]
@@ -221,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel of each reference render (1024)")
     ap.add_argument("--max-depth", type=int, default=8, help="reference path depth (> 2: interreflections)")
     ap.add_argument("--seed", type=int, default=28, help="seed of the columns' draw")
+    ap.add_argument("--rows", default=None, help="draw the columns from these envmap rows only (comma-separated, "
+                    "e.g. 14,15: the two above the horizon at 32 x 64)")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--write", action="store_true", help="write the block of bench/results.md")
     a = ap.parse_args(argv)
@@ -241,8 +244,10 @@ def main(argv: list[str] | None = None) -> int:
         if tr.env_height != 32 and ref is None:
             log(f"  envmap height {tr.env_height}")
         if ref is None:
-            texels = choose_texels(tr.env_height, n_cols, a.seed)
-            cache = a.out / f"reference-{size}px-{n_cols}cols-{spp}spp-d{a.max_depth}-s{a.seed}.npz"
+            texels = choose_texels(tr.env_height, n_cols, a.seed,
+                                   [int(r) for r in a.rows.split(",")] if a.rows else None)
+            cache = a.out / (f"reference-{size}px-{n_cols}cols-{spp}spp-d{a.max_depth}-s{a.seed}"
+                             + (f"-rows{a.rows.replace(',', '_')}" if a.rows else "") + ".npz")
             log(f"reference: {len(texels)} columns x 2 renders at {spp} spp, max_depth {a.max_depth}")
             ref = reference(cap, texels, tr.env_height, spp, a.max_depth, tr.downsample, tr.pixel_index, cache)
         flat = [r * 2 * tr.env_height + c for r, c in ref["texels"].tolist()]
