@@ -101,3 +101,4 @@ def test_camera_looking_past_the_object_is_red(tmp_path, capsys):
     stage = json.loads((cap / "objcam" / "solve" / "stage.json").read_text())
     assert stage["metrics"]["verdict"] == "red"
     assert "WARNING: t0 graded red" in out
+    assert "envmap.exr verdict red: " in out  # the end-of-run lines name each envmap with its grade

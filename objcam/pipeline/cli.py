@@ -125,13 +125,28 @@ def _result_paths(pipe, done: set[str]) -> list[str]:
     lines = []
     if "solve" in done:
         for env in sorted(pipe.stage_dir("solve").glob("*/envmap.exr")):
-            lines.append(f"envmap {env.parent.name}: {env}")
+            lines.append(f"envmap {env.parent.name}: {env}{_verdict_note(env.parent / 'solve.json')}")
     page = pipe.stage_dir("report") / "index.html"
     if "report" in done and page.is_file():
         lines.append(f"report: {page}")
     if lines:
         lines.append(f"for Blender, Mitsuba, viewers: objcam export {escape(str(pipe.capture))} OUT")
     return lines
+
+
+def _verdict_note(solve_json) -> str:
+    """' (verdict GRADE: first reason)' from a target's solve.json (objcam.solvers.plan.verdict), '' without."""
+    import json
+
+    try:
+        v = json.loads(solve_json.read_text()).get("verdict") or {}
+    except (OSError, ValueError):
+        return ""
+    if not v.get("grade"):
+        return ""
+    style = {"green": "green", "yellow": "yellow", "red": "bold red"}.get(v["grade"], "")
+    why = f": {escape(v['reasons'][0])}" if v.get("reasons") else ""
+    return f"  [{style}]verdict {v['grade']}[/]{why}"
 
 
 def _status(args) -> int:
