@@ -89,5 +89,5 @@ def target_row(work: Path, capture: Path, target: str) -> dict:
         "a_seconds": trec["wall_seconds"], "a_summary": trec.get("summary", ""),
         "solve_seconds": sm.get("solve_seconds"),
         "transport_model": trec["metrics"].get("model"), "auto_margin": trec["metrics"].get("auto_margin"),
-        "verdict": {k: v for k, v in (sm.get("verdict") or {}).items()},
+        "verdict": sm.get("verdict") or {},
     }

@@ -136,8 +136,6 @@ def _result_paths(pipe, done: set[str]) -> list[str]:
 
 def _verdict_note(solve_json) -> str:
     """' (verdict GRADE: first reason)' from a target's solve.json (objcam.solvers.plan.verdict), '' without."""
-    import json
-
     try:
         v = json.loads(solve_json.read_text()).get("verdict") or {}
     except (OSError, ValueError):

@@ -87,7 +87,11 @@ def restrict_weak(grid: EnvGrid, texel_index: np.ndarray, P: sp.spmatrix | None,
         return None if P is None else sp.csr_matrix(P)
     t = np.asarray(texel_index, dtype=np.int64).ravel()
     n = t.size
-    gid = np.arange(n) if P is None else sp.csr_matrix(P).tocoo().col[np.argsort(sp.csr_matrix(P).tocoo().row)]
+    if P is None:
+        gid = np.arange(n)
+    else:  # one group per texel: the group of row i
+        coo = sp.coo_matrix(P)
+        gid = coo.col[np.argsort(coo.row)]
     rows = np.ones(n, bool)
     if mode == "exclude":
         rows = ~weak

@@ -197,6 +197,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         summary += f"; the truth's row-mean map scores SSIM {np.mean(rm):.3f} (beaten on {beat}/{len(rm)})"
     grades = [r["verdict"]["grade"] for r in results.values() if "verdict" in r]
     if grades:
-        summary += "; verdict " + ", ".join(f"{grades.count(g)} {g}" for g in ("green", "yellow", "red")
-                                            if g in grades)
+        from objcam.solvers.plan.verdict import GRADES
+
+        summary += "; verdict " + ", ".join(f"{grades.count(g)} {g}" for g in GRADES if g in grades)
     return StageOutputs(metrics={"targets": results, "mean": mean}, summary=summary)

@@ -48,6 +48,13 @@ def estimate_relative_noise(image: np.ndarray, valid: np.ndarray) -> float | Non
     return float(np.mean(rel)) if rel else None
 
 
+def absolute_noise(values: np.ndarray, noise: float) -> float:
+    """The absolute noise sigma of a relative one (``noise_sigma``'s convention: relative to the median positive
+    value of ``values``, any shape); the median taken as 1 when no value is positive."""
+    pos = np.asarray(values)[np.asarray(values) > 0]
+    return noise * (float(np.median(pos)) if pos.size else 1.0)
+
+
 def choose_columns(texel_index: np.ndarray, norms: np.ndarray, n: int, env_height: int) -> np.ndarray:
     """Up to n kept texels spread over the sphere: farthest-point sampling of their directions, starting from the
     column with the most energy. Returns positions into ``texel_index``."""
@@ -77,10 +84,9 @@ def indirect_effect(direct: np.ndarray, indirect: np.ndarray, noise: float) -> t
     sigma_abs^2`` with ``sigma_abs = noise x median(direct > 0)``; the threshold ``AUTO_EFFECT_Z sqrt(2 M)`` over
     the M pixel values.
     """
-    pos = direct[direct > 0]
-    if pos.size == 0 or noise <= 0:
+    if not np.any(direct > 0) or noise <= 0:
         return 0.0, float("inf")
-    sigma_abs = noise * float(np.median(pos))
+    sigma_abs = absolute_noise(direct, noise)
     effect = float(np.sum(np.asarray(indirect, np.float64) ** 2) / sigma_abs**2)
     return effect, AUTO_EFFECT_Z * float(np.sqrt(2.0 * direct.size))
 
@@ -99,11 +105,10 @@ def pinned_scale_effect(direct: np.ndarray, indirect: np.ndarray, noise: float,
         return 0.0, float("inf")
     p, i = np.asarray(direct, np.float64)[pins], np.asarray(indirect, np.float64)[pins]
     pp = float(np.sum(p * p))
-    pos = direct[direct > 0]
-    if pp <= 0 or pos.size == 0:
+    if pp <= 0 or not np.any(direct > 0):
         return 0.0, float("inf")
     b = float(np.sum(p * i)) / pp
-    sigma_c = noise * float(np.median(pos)) / np.sqrt(pp)
+    sigma_c = absolute_noise(direct, noise) / np.sqrt(pp)
     return (b / sigma_c) ** 2, AUTO_EFFECT_Z**2
 
 

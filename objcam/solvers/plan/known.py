@@ -119,7 +119,7 @@ def solve_known_quadratic(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls:
     return X, kkt, obj, iters
 
 
-def known_basis(tr, params: SolveParams, split: np.ndarray | None = None):
+def known_basis(tr, params: SolveParams, split: np.ndarray | None = None, weak: np.ndarray | None = None):
     """The known-albedo solve's basis P over A's texels (None: the texels): the merged basis
     (objcam.solvers.basis), or for a supersampled A the output texels with ``split`` of them refined
     (objcam.solvers.refine; None: none refined)."""
@@ -128,7 +128,9 @@ def known_basis(tr, params: SolveParams, split: np.ndarray | None = None):
         P = texel_basis(tr.grid, tr.texel_index, g)
         if params.weak_texels == "keep":
             return P
-        return restrict_weak(tr.grid, tr.texel_index, P, weak_texels(tr, params.weak_fraction), params.weak_texels)
+        if weak is None:  # (N,) bool: the texels held to params.weak_texels (rules.weak_texels)
+            weak = weak_texels(tr, params.weak_fraction)
+        return restrict_weak(tr.grid, tr.texel_index, P, weak, params.weak_texels)
     if split is None:
         split = np.zeros(coarse_of(tr.grid, tr.texel_index, tr.output_height)[0].size, bool)
     return refined_basis(tr.grid, tr.texel_index, tr.output_height, split, g)
@@ -140,7 +142,8 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
     record (channels_in_A, solve_seconds, iterations, kkt_residual_max, objective, ls_relative, ls_source)."""
     use, y = d.use, d.y
     env = tr.envmap_from_x(X)
-    P = known_basis(tr, params)
+    weak = weak_texels(tr, params.weak_fraction) if params.weak_texels != "keep" else None
+    P = known_basis(tr, params, weak=weak)
     solved = tr.texel_index if P is None else tr.texel_index[sp.csr_matrix(P).getnnz(axis=1) > 0]
     mask = texel_mask(grid, solved)  # weak texels excluded (weak_texels=exclude) are not solved
     fine = None
@@ -153,8 +156,7 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
     info = {
         "method": params.method, "albedo": "known", "texels": int(len(tr.texel_index)),
         **basis_info(tr.texel_index, P, params, known=True),
-        **({"weak_texels": params.weak_texels, "texels_weak": int(weak_texels(tr, params.weak_fraction).sum())}
-           if params.weak_texels != "keep" else {}),
+        **({"weak_texels": params.weak_texels, "texels_weak": int(weak.sum())} if weak is not None else {}),
         "pixels_used": int(use.sum()), "pixels_excluded": int((~use).sum()),
         "channels_in_A": solve["channels_in_A"], "solve_seconds": solve["solve_seconds"],
         "iterations": solve["iterations"], "kkt_residual_max": solve["kkt_residual_max"],

@@ -48,13 +48,8 @@ def noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolvePar
     (the known-albedo edge prior), within LS_RANGE (the noise sets how much the data can be trusted against the
     prior; measured on 128 x 128 targets, and transport's automatic pooling keeps larger photos at 8-32k fitted
     pixels)."""
-    from objcam.transport.auto import estimate_relative_noise
-
-    sigma, source = target.noise_sigma, "noise_sigma"
-    if sigma:
-        sigma = sigma / max(int(f), 1)  # the mean of f x f independent pixels
-    else:
-        sigma, source = estimate_relative_noise(pooled, pooled_ok), "estimated noise"
+    sigma, source = fitted_noise(target, pooled, pooled_ok, f)
+    source = {"estimated": "estimated noise"}.get(source, source)
     if not sigma:
         return KNOWN_LS_REL, "default (noise unknown)"
     factor = params.ls_noise_factor
@@ -68,6 +63,17 @@ def noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolvePar
     return ls, f"{source} {sigma:.4f} per fitted pixel"
 
 
+def fitted_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int) -> tuple[float | None, str]:
+    """(relative noise per fitted pixel, its source): the target's noise_sigma (per photo pixel) over the f x f
+    pooling (the mean of f^2 independent pixels), else estimated from the pooled photo
+    (objcam.transport.auto.estimate_relative_noise); (None, "unknown") when neither is possible."""
+    from objcam.transport.auto import estimate_relative_noise
+
+    if target.noise_sigma:
+        return float(target.noise_sigma) / max(int(f), 1), "noise_sigma"
+    est = estimate_relative_noise(pooled, pooled_ok)
+    return (float(est), "estimated") if est else (None, "unknown")
+
 
 def discrepancy_sigma(target, y: np.ndarray, rule: str) -> float | None:
     """Absolute noise standard deviation of one pixel value for the discrepancy rule: the target's relative
@@ -77,16 +83,23 @@ def discrepancy_sigma(target, y: np.ndarray, rule: str) -> float | None:
     if not target.noise_sigma:
         raise StageError(f"auto_reg=discrepancy needs the noise level of target {target.name!r}",
                          fix="give noise_sigma for the target in capture.toml, or use solve.auto_reg=gcv")
-    pos = y[y > 0]
-    return float(target.noise_sigma * (np.median(pos) if pos.size else 1.0))
+    from objcam.transport.auto import absolute_noise
 
+    return float(absolute_noise(y, target.noise_sigma))
+
+
+def relative_column_norms(G: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N,) each texel's column norm sqrt(diag(G)) over the median one above the horizon (over all texels when
+    none is above): how strongly the photo sees each direction. G: (N, N) A^T A (a channel mean);
+    directions: (N, 3) the texels' unit directions, z up."""
+    col = np.sqrt(np.clip(np.diag(G), 0, None))
+    up = directions[:, 2] > 0
+    ref = float(np.median(col[up])) if up.any() else float(np.median(col))
+    return col / max(ref, 1e-300)
 
 
 def weak_texels(tr, fraction: float) -> np.ndarray:
-    """(N,) bool: A's texels whose column norm (channel mean of sqrt(diag(A^T A))) is under ``fraction`` x the
-    median over the texels above the horizon: directions the photo barely sees (a sliver below the horizon past
-    the support's edge sees ~1e-4-0.05 of a typical texel on the hard suite; the lowest row above it 0.14-1.2)."""
-    col = np.sqrt(np.clip(np.einsum("cii->ci", tr.gram()).mean(axis=0), 0, None))
-    up = tr.directions[:, 2] > 0
-    ref = float(np.median(col[up])) if up.any() else float(np.median(col))
-    return col < fraction * ref
+    """(N,) bool: A's texels whose relative column norm (:func:`relative_column_norms` of the channel-mean
+    A^T A) is under ``fraction``: directions the photo barely sees (a sliver below the horizon past the support's
+    edge sees ~1e-4-0.05 of a typical texel on the hard suite; the lowest row above it 0.14-1.2)."""
+    return relative_column_norms(tr.gram().mean(axis=0), tr.directions) < fraction

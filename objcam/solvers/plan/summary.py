@@ -4,6 +4,8 @@ priors determine)."""
 
 from __future__ import annotations
 
+from objcam.solvers.plan.verdict import GRADES
+
 
 def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tuple[str, dict]:
     """(the summary line, the stage metrics) for ``per_target`` {target: solve.json} solved by ``method`` in
@@ -42,7 +44,7 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
     metrics = {"targets": per_target, "seconds": round(total, 4)}
     grades = [v["verdict"]["grade"] for v in per_target.values() if v.get("verdict")]
     if grades:  # the capture's worst grade
-        metrics["verdict"] = max(grades, key=("green", "yellow", "red").index)
+        metrics["verdict"] = max(grades, key=GRADES.index)
     if joint:
         metrics["scale_ambiguous"] = ambiguous
     return summary, metrics

@@ -41,38 +41,30 @@ from objcam.solvers.plan.defaults import (
     VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
     VERDICT_UNCERTAIN_YELLOW,
 )
+from objcam.solvers.plan.rules import fitted_noise, relative_column_norms
 from objcam.solvers.plan.targets import TargetData, TargetSolution
 
 GRADES = ("green", "yellow", "red")
 
 
-def fitted_noise(target, d: TargetData) -> tuple[float | None, str]:
-    """(relative noise per fitted pixel, its source): noise_sigma over the pooling factor, else estimated from the
-    pooled photo (objcam.transport.auto.estimate_relative_noise), else None."""
-    from objcam.transport.auto import estimate_relative_noise
-
-    if target.noise_sigma:
-        return float(target.noise_sigma) / max(int(d.transport.downsample), 1), "noise_sigma"
-    est = estimate_relative_noise(d.pooled, d.pooled_ok)
-    return (float(est), "estimated") if est else (None, "unknown")
-
-
 def chi2_per_value(y: np.ndarray, fit: np.ndarray, sigma_rel: float) -> tuple[float, float]:
     """(chi-squared per pixel value, absolute sigma) of the fit (M, 3) to y (M, 3) at relative noise sigma_rel
     (over the median positive pixel value, as noise_sigma)."""
-    pos = y[y > 0]
-    sigma_abs = sigma_rel * (float(np.median(pos)) if pos.size else 1.0)
+    from objcam.transport.auto import absolute_noise
+
+    sigma_abs = absolute_noise(y, sigma_rel)
     return float(np.mean(((y - fit) / sigma_abs) ** 2)), sigma_abs
 
 
 def texel_uncertainty(G: np.ndarray, D, sigma_rel: float, sigma_abs: float, lr_rel: float) -> np.ndarray:
     """(N,) posterior standard deviation of each texel's radiance: ``sigma_abs sqrt(diag(Q^-1))``,
-    ``Q = G + ls D^T D + lr I`` with ls = LS_NOISE_FACTOR sigma_rel^2 and lr relative to mean(diag(G))."""
+    ``Q = G + ls D^T D + lr I`` with ls = LS_NOISE_FACTOR sigma_rel^2 and lr relative to mean(diag(G)) (the
+    analysis stage's objcam.analysis.texel_uncertainty on Q's Cholesky factor, the smoothness prior included)."""
+    from objcam.analysis import texel_uncertainty as uncertainty_from_factor
+
     ls_abs, lr_abs = solvers.absolute_weights(G, LS_NOISE_FACTOR * sigma_rel**2, max(lr_rel, 1e-6))
-    Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
-    L = sla.cholesky(Q, lower=True, check_finite=False)
-    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
-    return sigma_abs * np.sqrt(np.einsum("ij,ij->j", Linv, Linv))
+    L = sla.cholesky(solvers.regularized_gram(G, D, ls_abs, lr_abs), lower=True, check_finite=False)
+    return uncertainty_from_factor(None, 0.0, L=L, sigma=sigma_abs)
 
 
 def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
@@ -82,7 +74,7 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     env = sol.fine[0] if sol.fine is not None else sol.envmap  # A's own grid
     X = tr.x_from_envmap(env).astype(np.float64)
     fit = np.asarray(sol.prediction, np.float64).reshape(-1, 3)[tr.pixel_index][use]  # the solve's own model
-    sigma_rel, noise_source = fitted_noise(target, d)
+    sigma_rel, noise_source = fitted_noise(target, d.pooled, d.pooled_ok, tr.downsample)
     lum = X.mean(axis=1)
     omega = tr.solid_angle.astype(np.float64)
     up = tr.directions[:, 2] > 0
@@ -94,10 +86,9 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     G = tr.gram().mean(axis=0)
     if not use.all():
         G = G - sum(solvers.gram(tr.A[c][~use]) for c in range(tr.A.shape[0])) / tr.A.shape[0]
-    col = np.sqrt(np.clip(np.diag(G), 0, None))
     jb = int(np.argmax(lum))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(tr.directions[jb, 2], -1, 1))))
-    rec["brightest_seen"] = float(col[jb] / max(float(np.median(col[up])) if up.any() else 1.0, 1e-300))
+    rec["brightest_seen"] = float(relative_column_norms(G, tr.directions)[jb])
     if sigma_rel:
         rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
         D = solvers.difference_operator(tr.grid, tr.texel_index)
