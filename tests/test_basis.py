@@ -142,3 +142,36 @@ def test_restrict_weak_excludes_or_ties_to_the_texel_above():
     assert restrict_weak(grid, keep, None, np.zeros(keep.size, bool), "tie") is None
     with pytest.raises(ValueError):
         restrict_weak(grid, keep, P0, weak, "floor")
+
+
+def test_excluded_texels_are_unsolved_not_zero():
+    """With weak texels excluded, the solve on the remaining texels is the solve of the problem that never had
+    the excluded ones: solved_edges drops every prior edge that touches them. Without it the edges to the
+    excluded row act as a pull towards 0 on the row next to it (the darkened row above the horizon)."""
+    from objcam.solvers.basis import restrict_weak, solved_edges
+
+    grid = EnvGrid(8)
+    w = grid.width
+    t = _upper(grid)  # rows 0-4; row 4 below the horizon
+    weak = t // w == 4
+    rng, A = _problem(3, grid, t)
+    row3 = t // w == 3
+    A[:, row3] *= 0.05  # the row above the horizon is seen at grazing incidence: weakly
+    x_true = np.full((t.size, 3), 1.0)
+    x_true[weak] = 0.0  # the excluded row sends no light: the data do not pull on it
+    Y = A @ x_true + 1e-3 * rng.standard_normal((A.shape[0], 3))
+    G, B, yy = A.T @ A, A.T @ Y, np.einsum("ij,ij->j", Y, Y)
+    ls, lr = 1e-1 * np.mean(np.diag(G)), 1e-6 * np.mean(np.diag(G))  # a strong prior: the pull would show
+    P = restrict_weak(grid, t, None, weak, "exclude")
+    D = difference_operator(grid, t)
+    kw = dict(steps=3, eps_rel=0.05)
+    ours = solve_edges([G], [B], [[0, 1, 2]], yy, solved_edges(D, P), ls, lr, basis=P, **kw)
+    sub = t[~weak]
+    As = A[:, ~weak]
+    alone = solve_edges([As.T @ As], [As.T @ Y], [[0, 1, 2]], yy, difference_operator(grid, sub), ls, lr, **kw)
+    np.testing.assert_allclose(ours.x[~weak], alone.x, rtol=1e-7, atol=1e-10)
+    assert np.all(ours.x[weak] == 0)
+    assert abs(ours.x[row3].mean() - 1.0) < 0.02  # the row next to the excluded one keeps its level
+    pulled = solve_edges([G], [B], [[0, 1, 2]], yy, D, ls, lr, basis=P, **kw)  # edges to the unsolved row kept
+    assert pulled.x[row3].mean() < 0.9 * ours.x[row3].mean()
+    assert solved_edges(D, sp.identity(t.size, format="csr")).shape == D.shape

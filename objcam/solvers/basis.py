@@ -73,6 +73,21 @@ def unknowns(texel_index: np.ndarray, P: sp.spmatrix | None) -> int:
     return int(np.size(texel_index) if P is None else P.shape[1])
 
 
+def solved_edges(D: sp.spmatrix, P: sp.spmatrix | None) -> sp.csr_matrix:
+    """The prior's edges D (E, N) without those that touch a texel outside every group of P (N, N'; a texel
+    ``restrict_weak`` excluded): an excluded texel is unsolved, not zero, so no edge may pull its neighbour
+    towards 0 (with such edges ``D P`` keeps ``w x_i`` for a solved neighbour i: a ridge that darkened the row
+    above the horizon and pushed near-horizon light a row up)."""
+    D = sp.csr_matrix(D)
+    if P is None:
+        return D
+    outside = (sp.csr_matrix(P).getnnz(axis=1) == 0).astype(np.float64)
+    if not outside.any():
+        return D
+    touches = np.asarray(abs(D) @ outside).ravel() > 0
+    return D[~touches]
+
+
 def restrict_weak(grid: EnvGrid, texel_index: np.ndarray, P: sp.spmatrix | None, weak: np.ndarray,
                   mode: str) -> sp.csr_matrix | None:
     """The basis P (N, N'; None: one unknown per texel) with the ``weak`` (N,) bool texels held to a stated prior.

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 
 from objcam import solvers
 from objcam.envmap import EnvGrid
-from objcam.solvers.basis import merge_gram, restrict_weak, texel_basis
+from objcam.solvers.basis import merge_gram, restrict_weak, solved_edges, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import solve_edges
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN
@@ -102,9 +102,9 @@ def solve_known_quadratic(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls:
             if not use.all():
                 G = G - solvers.gram(tr.A[c][~use])
             ls_abs, lr_abs = solvers.absolute_weights(G, ls, lr)
-            D = solvers.difference_operator(grid, tr.texel_index)
-            Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
             P = known_basis(tr, params)
+            D = solved_edges(solvers.difference_operator(grid, tr.texel_index), P)
+            Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
             gram_cache[key] = (Q, None) if P is None else (merge_gram(P, Q), P)
         Q, P = gram_cache[key]
         chans = [0, 1, 2] if C == 1 else [c]
@@ -195,6 +195,7 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
     yy = np.einsum("ij,ij->j", Y, Y)
     basis = known_basis(tr, params)
+    D = solved_edges(D, basis)
     refine_info = None
     if tr.output_height != tr.env_height:
         # supersampled A (objcam.solvers.refine): a pilot quadratic solve on the output texels says where the
