@@ -139,7 +139,9 @@ def test_blender_script(exported):
     cam = json.loads((cap / "targets" / "t0.json").read_text())
     m = np.asarray(data["cameras"]["t0"]["matrix_world"])
     assert np.allclose(m, np.asarray(cam["world_from_camera"]) @ np.diag([1, -1, -1, 1]), atol=1e-12)
-    assert (out / data["envmap"]).is_file() and all((out / p).is_file() for p in data["meshes"])
+    assert (out / data["envmap"]).is_file() and all((out / m["obj"]).is_file() for m in data["meshes"])
+    assert data["render"] == {"max_depth": 2, "samples": 256}
+    assert [m["texture"] for m in data["meshes"]] == [None, "meshes/support_albedo.exr"]
 
 
 def test_export_refuses_a_foreign_folder(exported, tmp_path, capsys):

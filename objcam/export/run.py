@@ -194,8 +194,10 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
     files += write_colmap_text(out / "colmap", cameras, image_names)
     files.append(write_transforms_json(out / "transforms.json", cameras, image_names))
     first = scene.targets[0].name
-    files.append(write_blender_script(out / "blender_scene.py", f"envmaps/{first}.exr",
-                                      ["meshes/object.obj", "meshes/support.obj"], cameras))
+    blender_meshes = [{"obj": obj[3:], "texture": tex[3:] if tex else None, "rgb": list(rgb) if rgb else None,
+                       "nearest": nearest} for _, obj, rgb, tex, nearest in shapes]  # paths from OUT: drop "../"
+    files.append(write_blender_script(out / "blender_scene.py", f"envmaps/{first}.exr", blender_meshes, cameras,
+                                      record["targets"][first]["max_depth"], opts.spp))
     record["cameras"] = sorted(cameras)
     record["files"] = sorted(str(p.relative_to(out)) for p in set(files))
     atomic_write_text(out / MARKER, json.dumps(record, indent=2))
