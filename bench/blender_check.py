@@ -185,7 +185,8 @@ def _markdown(world: dict, scenes: list[dict], spp: int, version: str) -> str:
              "The exported scene (sphere on a checker support, 40 x 40 pixels, direct light): Blender (Cycles, "
              "`blender_scene.py`) and Mitsuba (`mitsuba/t0.xml`) against the solve's prediction; bias = "
              "sqrt(relative L2^2 - noise^2), noise from two seeds.", "",
-             "| albedo | renderer | relative L2 | noise | bias | seconds (2 renders) |", "|---|---|---:|---:|---:|---:|"]
+             "| albedo | renderer | relative L2 | noise | bias | seconds (2 renders) |",
+             "|---|---|---:|---:|---:|---:|"]
     for s in scenes:
         for key, name, sec in (("blender", "Blender", s["seconds_blender"]), ("mitsuba", "Mitsuba",
                                                                               s["seconds_mitsuba"])):

@@ -251,7 +251,8 @@ def test_baked_albedo_reproduces_the_prediction(exported_unknown, tmp_path):
     for name in ("object", "support"):
         mean = read_exr(out / "meshes" / f"{name}_albedo.exr")[..., :3].reshape(-1, 3).mean(axis=0)
         tex = xml[xml.index(f'id="{name}"'):].split("<texture", 1)[1].split("</texture>", 1)[0]
-        flat = flat.replace(f"<texture{tex}</texture>", '<rgb name="reflectance" value="%r, %r, %r"/>' % tuple(float(c) for c in mean))
+        rgb = ", ".join(repr(float(c)) for c in mean)
+        flat = flat.replace(f"<texture{tex}</texture>", f'<rgb name="reflectance" value="{rgb}"/>')
     assert flat.count("<texture") == 0
     coarse = xml
     for name in ("object", "support"):  # 8 x 8 texel blocks: 2 texels per pixel instead of the rule's 16
