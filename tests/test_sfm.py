@@ -87,16 +87,21 @@ def test_board_spec_validation():
 
 def test_rendered_corners_match_projection(small_capture):
     views, truth, params = small_capture
-    errs = []
+    errs, broken = [], []
     for stem in truth:
         ids, uv = detect(read_display_image(views / f"{stem}.png"), params.board)
         assert len(ids) >= 12, stem
         proj = truth[stem].project(world_points_array(params.board, ids))
         errs.append(np.linalg.norm(uv - proj, axis=1))
+        broken.append(np.linalg.norm(uv + 0.5 - proj, axis=1))  # COLMAP's pixel-corner origin taken for objcam's
     e = np.concatenate(errs)
     # 16 spp renders are noisy (~5% per pixel) and the squares ~10-20 px: measured median 0.20 px, mean 0.26 px
     # (0.10 px at 800 x 600, 32 spp)
     assert np.median(e) < 0.3 and e.mean() < 0.35, (np.median(e), e.mean())
+    # a test of the test: corners off by the half-pixel convention miss the bound (measured median 0.74 px)
+    b = np.concatenate(broken)
+    print("half-pixel", np.median(b), b.mean())
+    assert not (np.median(b) < 0.3 and b.mean() < 0.35), (np.median(b), b.mean())
 
 
 def test_pnp_cross_check(small_capture):
@@ -106,6 +111,13 @@ def test_pnp_cross_check(small_capture):
     assert r is not None and r.rms_px < 0.5
     d, a = camera_difference(r.camera, truth[stem])
     assert d < 0.005 and a < 0.6
+    # a test of the test: PnP with a focal length 3% off (a misread EXIF focal) misses a bound (measured centre
+    # error 11 mm, rms 0.24 px: the reprojection alone would not tell)
+    f = truth[stem].fx * 1.03
+    bad = pnp_camera(views / f"{stem}.png", params.board, truth[stem].model_copy(update={"fx": f, "fy": f}))
+    db, ab = camera_difference(bad.camera, truth[stem])
+    print("focal 3% off", bad.rms_px, db, ab)
+    assert not (bad.rms_px < 0.5 and db < 0.005 and ab < 0.6), (bad.rms_px, db, ab)
 
 
 # --------------------------------------------------------------------------------------------------- umeyama
