@@ -208,7 +208,7 @@ def bake_albedo(mesh: MeshData, others: list[MeshData], views: list[AlbedoView])
     offset = 1e-5 * float(np.linalg.norm(allv.max(axis=0) - allv.min(axis=0)))  # self-hits: scene size relative
     if _is_rectangle(mesh):
         uvm, pts, size, achieved = _rectangle_uv(mesh, seen_pts, texel)
-        nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+        nrm = np.broadcast_to(np.array([0.0, 0.0, 1.0]), pts.shape)  # a view: no (R*C, 3) copy
         covered = np.ones(size, bool)
         uv_kind = "planar over the seen rectangle (3 x 3 quads, the outer ones clamped to its border)"
     else:
