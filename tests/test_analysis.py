@@ -244,6 +244,18 @@ def test_near_horizon_texels_are_least_certain():
     assert effective_rank(singular_spectrum(An), 1e-3) <= An.shape[1] - 10
 
 
+def test_an_uncertainty_blind_to_collinearity_fails_the_horizon_bound():
+    """A test of the test (tests/broken.py): the per-texel uncertainty 1 / sqrt(G_jj + lr), each texel alone as if
+    the others were known (what ignoring the columns' correlation gives), is the same for every unit-norm column
+    and misses the bound above (horizon over the rest: 1.0, against the test's 3)."""
+    grid, texel_index, A = sphere_shadow_transport()
+    An = A / np.linalg.norm(A, axis=0)
+    horizon = texel_index // grid.width == grid.height // 2 - 1
+    lr = absolute_ridge(An, 1e-4)
+    u = 1.0 / np.sqrt(np.einsum("ij,ij->j", An, An) + lr)
+    assert not u[horizon].min() > 3 * u[~horizon].max(), u[horizon].min() / u[~horizon].max()
+
+
 # --- plots ------------------------------------------------------------------------------------------------------
 
 def test_plots_write_pngs(tmp_path):

@@ -54,7 +54,9 @@ def _envmap(grid, texels, X):
     return env.reshape(grid.height, 2 * grid.height, 3)
 
 
-def test_split_keeps_the_dark_channel_and_beats_one_solve():
+def _one_and_split(chroma_factor: float = 10.0):
+    """(X_true, X_one, X_split, one's metrics, split's metrics, band mask) on :func:`_coloured_problem`; the chroma
+    solve at ``chroma_factor`` x the luminance solve's smoothing weight."""
     grid, texels, A, X_true, Y = _coloured_problem()
     G = gram(A)
     D = difference_operator(grid, texels)
@@ -65,14 +67,27 @@ def test_split_keeps_the_dark_channel_and_beats_one_solve():
         return solve_edges([G], [A.T @ Y], [[0, 1, 2]], yy, D, ls, lr_abs, steps=6, eps_rel=1e-3, tone=0.3).x
 
     X_one = solve(ls_abs)
-    X_split = luminance_with_chroma(X_one, solve(10 * ls_abs))
+    X_split = luminance_with_chroma(X_one, solve(chroma_factor * ls_abs))
     mask = _envmap(grid, texels, np.ones((len(texels), 3)))[..., 0] > 0
     truth = _envmap(grid, texels, X_true)
     one = envmap_metrics(_envmap(grid, texels, X_one), truth, mask)
     split = envmap_metrics(_envmap(grid, texels, X_split), truth, mask)
     band = np.divmod(texels, grid.width)[0] >= 2
+    return X_true, X_one, X_split, one, split, band
+
+
+def test_split_keeps_the_dark_channel_and_beats_one_solve():
+    _, X_one, X_split, one, split, band = _one_and_split()
     # measured: the one solve leaves 23 of the band's 32 blue texels at 0 (SSIM 0.946), the split 6 (0.980)
     assert (X_one[band, 2] <= 0).sum() >= 15
     assert (X_split[band, 2] <= 0).sum() <= 10
     assert split["ssim"] > one["ssim"] + 0.02, (one["ssim"], split["ssim"])
     np.testing.assert_allclose(X_split.mean(axis=1), X_one.mean(axis=1), rtol=1e-9)
+
+
+def test_a_chroma_solve_no_smoother_than_the_luminance_one_fails_the_bounds():
+    """A test of the test (tests/broken.py): the chroma taken from a solve at the luminance solve's own weight
+    (factor 1: the split is then the one solve) keeps the band's blue texels at 0 and gains no SSIM."""
+    _, X_one, X_split, one, split, band = _one_and_split(1.0)
+    assert not (X_split[band, 2] <= 0).sum() <= 10
+    assert not split["ssim"] > one["ssim"] + 0.02, (one["ssim"], split["ssim"])

@@ -28,13 +28,28 @@ def _problem(noise=0.002, seed=0):
     return grid, texels, A, x, y
 
 
-def test_edges_monotone_exact_and_better_than_quadratic():
+def _edges_against_quadratic(steps: int = 10):
+    """(edge solve result, its relative error, the quadratic solution's) on :func:`_problem`; ``steps``: the edge
+    solve's reweightings (0: no reweighting, which is the quadratic solve itself)."""
+    from objcam.solvers import solve_exact
+
     grid, texels, A, x_true, y = _problem()
     G = gram(A)
     D = difference_operator(grid, texels)
     ls_abs, lr_abs = absolute_weights(G, 1e-3, 1e-6)
     B = (A.T @ y)[:, None]
-    res = solve_edges([G], [B], [[0]], np.array([y @ y]), D, ls_abs, lr_abs, steps=10)
+    res = solve_edges([G], [B], [[0]], np.array([y @ y]), D, ls_abs, lr_abs, steps=steps)
+    # recovery: the quadratic solution (step 0) against the edge-preserving one
+    Q = regularized_gram(G, D, ls_abs, lr_abs)
+    xq = solve_exact(Q, B).x[:, 0]
+    assert kkt_residual(Q, B[:, 0], xq) < 1e-8
+    err_q = np.linalg.norm(xq - x_true) / np.linalg.norm(x_true)
+    err_e = np.linalg.norm(res.x[:, 0] - x_true) / np.linalg.norm(x_true)
+    return res, err_e, err_q
+
+
+def test_edges_monotone_exact_and_better_than_quadratic():
+    res, err_e, err_q = _edges_against_quadratic()
     hist = np.array(res.objective_history)
     assert res.steps >= 2
     assert np.all(np.diff(hist) <= 1e-9 * np.abs(hist[:-1])), hist  # majorise-minimise never goes up
@@ -42,15 +57,15 @@ def test_edges_monotone_exact_and_better_than_quadratic():
     # the last step is an exact solve of its reweighted quadratic
     assert res.results[0].kkt_residual.max() < 1e-8
     assert np.all(res.x >= 0)
-    # recovery: the quadratic solution (step 0) against the edge-preserving one
-    Q = regularized_gram(G, D, ls_abs, lr_abs)
-    from objcam.solvers import solve_exact
-
-    xq = solve_exact(Q, B).x[:, 0]
-    assert kkt_residual(Q, B[:, 0], xq) < 1e-8
-    err_q = np.linalg.norm(xq - x_true) / np.linalg.norm(x_true)
-    err_e = np.linalg.norm(res.x[:, 0] - x_true) / np.linalg.norm(x_true)
     assert err_e < 0.8 * err_q, (err_e, err_q)
+
+
+def test_a_broken_edge_solve_does_not_beat_the_quadratic():
+    """A test of the test (tests/broken.py): an edge solve that never reweights (steps=0: its first solve is the
+    quadratic one) misses the 20% margin above. (A Huber threshold so high that every edge is quadratic is no
+    broken answer here: it only weakens the prior, and on this low-noise problem that beats the quadratic too.)"""
+    _, err_e, err_q = _edges_against_quadratic(steps=0)
+    assert abs(err_e - err_q) < 1e-6 * err_q and not err_e < 0.8 * err_q, (err_e, err_q)
 
 
 def test_huber_is_quadratic_below_eps_and_linear_above():
@@ -106,7 +121,9 @@ def test_tone_weights_follow_the_power_law():
     np.testing.assert_array_equal(tone_weights(M, X, 0.0, 0.05), np.ones(D.shape[0]))
 
 
-def test_tone_weighting_recovers_a_dark_sky_in_tonemapped_units():
+def _tone_errors(ls: float, tone: float = 0.3) -> tuple[float, float, float, object]:
+    """(tonemapped RMSE of the toned solve, of the plain one, the toned solve's sun over the truth's, the toned
+    result) on :func:`_dim_sky_problem` at relative smoothing ``ls``."""
     grid, texels, A, x_true, y = _dim_sky_problem()
     G = gram(A)
     D = difference_operator(grid, texels)
@@ -115,17 +132,32 @@ def test_tone_weighting_recovers_a_dark_sky_in_tonemapped_units():
     def tm(v):
         return np.maximum(v, 0) ** (1 / 2.2)
 
+    ls_abs, lr_abs = absolute_weights(G, ls, 1e-6)
+    plain = solve_edges([G], [B], [[0]], np.array([y @ y]), D, ls_abs, lr_abs, steps=6, eps_rel=0.001)
+    toned = solve_edges([G], [B], [[0]], np.array([y @ y]), D, ls_abs, lr_abs, steps=6, eps_rel=0.001, tone=tone)
+    err_p = np.sqrt(np.mean((tm(plain.x[:, 0]) - tm(x_true)) ** 2))
+    err_t = np.sqrt(np.mean((tm(toned.x[:, 0]) - tm(x_true)) ** 2))
+    sun = int(np.argmax(x_true))
+    return float(err_t), float(err_p), float(toned.x[sun, 0] / x_true[sun]), toned
+
+
+def test_tone_weighting_recovers_a_dark_sky_in_tonemapped_units():
     for ls in (1e-3, 1e-2):
-        ls_abs, lr_abs = absolute_weights(G, ls, 1e-6)
-        plain = solve_edges([G], [B], [[0]], np.array([y @ y]), D, ls_abs, lr_abs, steps=6, eps_rel=0.001)
-        toned = solve_edges([G], [B], [[0]], np.array([y @ y]), D, ls_abs, lr_abs, steps=6, eps_rel=0.001,
-                            tone=0.3)
-        assert toned.tone == 0.3 and plain.tone == 0.0
+        err_t, err_p, sun, toned = _tone_errors(ls)
+        assert toned.tone == 0.3
         assert toned.results[0].kkt_residual.max() < 1e-8  # every step is an exact solve of its quadratic
         assert np.all(toned.x >= 0)
-        err_p = np.sqrt(np.mean((tm(plain.x[:, 0]) - tm(x_true)) ** 2))
-        err_t = np.sqrt(np.mean((tm(toned.x[:, 0]) - tm(x_true)) ** 2))
         assert err_t < 0.8 * err_p, (ls, err_t, err_p)
         # the sun keeps its energy: the tone weights leave bright edges free
-        sun = int(np.argmax(x_true))
-        assert abs(toned.x[sun, 0] / x_true[sun] - 1) < 0.25
+        assert abs(sun - 1) < 0.25
+
+
+def test_broken_tone_weighting_fails_the_bounds():
+    """A test of the test (tests/broken.py): without tone weights (tone 0) the toned solve is the plain one and
+    misses the 20% margin; drowned in its prior (ls 10, 1000 x the test's), the sun loses its energy (measured:
+    the sun at 0.083 of the truth)."""
+    err_t, err_p, _, _ = _tone_errors(1e-3, tone=0.0)
+    assert not err_t < 0.8 * err_p, (err_t, err_p)
+    _, _, sun, _ = _tone_errors(10.0)
+    print(f"sun at {sun:.3f} of the truth")
+    assert not abs(sun - 1) < 0.25, sun

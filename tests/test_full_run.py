@@ -172,9 +172,11 @@ def test_report_tells_the_whole_capture(run, tmp_path):
 
 
 def test_export_of_a_photographed_capture(run, tmp_path):
-    """Unknown albedo, no pixel of known albedo: envmap and albedo are known up to a scale per channel, the export
-    fits it so its Mitsuba scene (the texture stage's albedo) renders the prediction (measured 10% relative L2:
-    the solve's per-pixel albedo is not the baked texture); every SfM view travels with its camera."""
+    """Unknown albedo, no pixel of known albedo: envmap and albedo are known up to a scale per channel; the export
+    bakes the solve's per-pixel albedo (objcam.export.bake), so its envmap is the solve's as it is and its Mitsuba
+    scene renders the prediction (measured 3.2% at 256 spp with interreflections, the support texture at its 4096
+    cap: 8.3 texels per pixel; 10% before the bake, with the texture stage's albedo and a fitted
+    scale); every SfM view travels with its camera."""
     import numpy as np
     import pycolmap
 
@@ -186,16 +188,18 @@ def test_export_of_a_photographed_capture(run, tmp_path):
     out = tmp_path / "export"
     assert main(["export", str(cap), str(out), "--work", str(work)]) == 0
     rec = json.loads((out / "export.json").read_text())
-    s = np.asarray(rec["targets"]["t0"]["envmap_scale"])
+    assert "envmap_scale" not in rec["targets"]["t0"] and all("bake" in rec["meshes"][k] for k in rec["meshes"])
     env = read_exr(work / "solve" / "t0" / "envmap.exr")[..., :3]
-    assert np.allclose(read_exr(out / "envmaps" / "t0.exr")[..., :3], env * s.astype(np.float32), rtol=1e-5)
+    assert np.array_equal(read_exr(out / "envmaps" / "t0.exr")[..., :3], env)
     mi = use_mitsuba()
     img = np.asarray(mi.render(mi.load_file(str(out / "mitsuba" / "t0.xml"), spp=256)), np.float64)[..., :3]
     pred = read_exr(work / "solve" / "t0" / "prediction.exr")[..., :3].astype(np.float64)
     h, w, f = pred.shape[0], pred.shape[1], rec["targets"]["t0"]["downsample"]
     pooled = img[: h * f, : w * f].reshape(h, f, w, f, 3).mean(axis=(1, 3))
     used = np.any(pred != 0, axis=2)
-    assert np.linalg.norm(pooled[used] - pred[used]) / np.linalg.norm(pred[used]) < 0.2
+    rel = np.linalg.norm(pooled[used] - pred[used]) / np.linalg.norm(pred[used])
+    print(f"export of the photographed capture: relative L2 {rel:.4f}")
+    assert rel < 0.06
     model = pycolmap.Reconstruction(str(out / "colmap"))
     views = sorted((work / "sfm" / "cameras" / "views").glob("*.json"))
     assert len(model.images) == len(views) + 1 and all((out / "images" / "views" / f"{v.stem}.png").is_file()

@@ -53,25 +53,66 @@ def test_plane_matches_world_frame(geometry_run):
     assert m["support_flat"] and m["board_corners"] >= 12
 
 
+def _registration_error(world_from_model: np.ndarray, photo_capture) -> np.ndarray:
+    """(V,) metres: the known model's vertices placed by ``world_from_model`` (then set on z = 0, as the stage
+    does) against the true object's."""
+    known = load_mesh(photo_capture.capture / "object.ply")
+    w = np.asarray(world_from_model)
+    v = known.vertices.astype(np.float64) @ w[:3, :3].T + w[:3, 3]
+    v[:, 2] -= v[:, 2].min()
+    truth = MeshData.load_npz(photo_capture.truth / "object.npz").vertices.astype(np.float64)
+    return np.linalg.norm(v - truth, axis=1)
+
+
+def _registration_ok(err: np.ndarray) -> bool:
+    return bool(err.mean() < 0.4e-3 and err.max() < 0.8e-3)
+
+
 def test_known_shape_registration(geometry_run, photo_capture):
     out, m = geometry_run
     reg = m["registration"]
     assert reg["unit"] == "mm" and reg["up_axis"] == "+y"
-    known = load_mesh(photo_capture.capture / "object.ply")
-    w = np.asarray(reg["world_from_model"])
-    v = known.vertices.astype(np.float64) @ w[:3, :3].T + w[:3, 3]
-    v[:, 2] -= v[:, 2].min()
-    truth = MeshData.load_npz(photo_capture.truth / "object.npz").vertices.astype(np.float64)
-    err = np.linalg.norm(v - truth, axis=1)
+    err = _registration_error(reg["world_from_model"], photo_capture)
     # vertex-to-vertex error of the registered model: 0.7 mm mean after ICP to the hull, 0.16 mm mean (0.28 mm
     # max) after the silhouette fit, at 12 views of 256 x 192 px (~1.1 mm per pixel)
-    assert err.mean() < 0.4e-3 and err.max() < 0.8e-3, (err.mean(), err.max())
+    assert _registration_ok(err), (err.mean(), err.max())
     sil = reg["silhouette"]
     assert sil["agree_fraction"] > 0.7 and sil["rms_px"] < 1.5, sil
     obj = MeshData.load_npz(out / "object.npz")
     assert abs(float(obj.vertices[:, 2].min())) < 1e-6
     assert len(obj.faces) <= 12000
     assert abs(m["object_height_mm"] - HEIGHT * 1e3) < 1.0
+
+
+# broken registrations: what a wrong yaw, a one-pixel slip or a misread unit would give
+BROKEN_REGISTRATION = {"turned 2 degrees about the vertical": ("yaw", 2.0),
+                       "shifted 1 mm (a pixel) sideways": ("shift", 1e-3),
+                       "scaled 1% (a unit or scale misread)": ("scale", 1.01)}
+
+
+@pytest.mark.parametrize("broken", list(BROKEN_REGISTRATION))
+def test_a_broken_registration_fails_the_bound(geometry_run, photo_capture, broken):
+    """A test of the test (tests/broken.py): the stage's registration, broken, misses the vertex bound above
+    (measured mean / max: 0.87 / 1.62 mm turned, 0.94 / 1.12 mm shifted, 0.52 / 0.92 mm scaled; bound 0.4 / 0.8)."""
+    from scipy.spatial.transform import Rotation
+
+    _, m = geometry_run
+    w = np.asarray(m["registration"]["world_from_model"], np.float64)
+    kind, amount = BROKEN_REGISTRATION[broken]
+    b = np.eye(4)  # applied in the world after the registration, about the object's vertical axis
+    truth = MeshData.load_npz(photo_capture.truth / "object.npz").vertices.astype(np.float64)
+    c = truth.mean(axis=0) * [1, 1, 0]
+    if kind == "yaw":
+        b[:3, :3] = Rotation.from_euler("z", amount, degrees=True).as_matrix()
+        b[:3, 3] = c - b[:3, :3] @ c
+    elif kind == "shift":
+        b[0, 3] = amount
+    else:
+        b[:3, :3] *= amount
+        b[:3, 3] = c - amount * c
+    err = _registration_error(b @ w, photo_capture)
+    print(broken, err.mean() * 1e3, err.max() * 1e3)
+    assert not _registration_ok(err), (err.mean(), err.max())
 
 
 def test_carved_hull_close_to_truth(geometry_run, photo_capture):
@@ -90,7 +131,37 @@ def test_carved_hull_close_to_truth(geometry_run, photo_capture):
     assert len(masks) == SMALL["n_views"]
 
 
-def test_silhouettes_against_true_masks(photo_capture):
+@pytest.mark.parametrize("broken", ["shifted 4 mm", "grown 4%", "its convex hull"])
+def test_a_broken_hull_fails_the_bound(geometry_run, photo_capture, broken):
+    """A test of the test (tests/broken.py): the stage's hull moved by four pixels, grown by 4% about its base
+    (silhouettes two pixels too generous) or replaced by its convex hull (the concavities no view carved) misses
+    the 1.6 mm Chamfer bound above (measured 1.98, 1.97 and 3.89 mm). What it cannot see: a hull moved by two
+    pixels scores 1.47 mm and by three 1.71 mm (a fat hull's mean distance hardly grows with a slip); the
+    registration bound above catches a one-pixel slip of the registered model."""
+    import trimesh
+
+    from objcam.geometry.chamfer import chamfer
+
+    out, _ = geometry_run
+    hull = MeshData.load_npz(out / "hull.npz")
+    v = hull.vertices.astype(np.float64)
+    if broken.startswith("shifted"):
+        v = v + [4e-3, 0, 0]
+        bad = MeshData(v.astype(np.float32), hull.faces)
+    elif broken.startswith("grown"):
+        c = v.mean(axis=0) * [1, 1, 0]
+        bad = MeshData((c + 1.04 * (v - c)).astype(np.float32), hull.faces)
+    else:
+        cv = trimesh.Trimesh(v, hull.faces.astype(np.int64), process=False).convex_hull
+        bad = MeshData(np.asarray(cv.vertices, np.float32), np.asarray(cv.faces, np.uint32))
+    ch = chamfer(bad, MeshData.load_npz(photo_capture.truth / "object.npz"), 30000)
+    print(broken, ch.mean * 1e3)
+    assert not ch.mean < 0.02 * HEIGHT, ch
+
+
+@pytest.fixture(scope="module")
+def silhouette_masks(photo_capture):
+    """(true masks, estimated (mask, known) pairs) of the first 6 views."""
     from objcam.geometry.raycast import object_masks
     from objcam.geometry.silhouette import silhouettes
     from objcam.geometry.views import load_views
@@ -99,13 +170,39 @@ def test_silhouettes_against_true_masks(photo_capture):
     truth = MeshData.load_npz(photo_capture.truth / "object.npz")
     true = object_masks(truth, [v.camera for v in views])
     est = silhouettes(load_views(photo_capture.ingest, photo_capture.sfm), progress=False)[:6]
+    return true, est
+
+
+def _missed_extra(true, est) -> tuple[float, float]:
     tot = sum(t.sum() for t in true)
     missed = sum((t & ~(m & k)).sum() for t, (m, k) in zip(true, est)) / tot
     extra = sum(((m & k) & ~t).sum() for t, (m, k) in zip(true, est)) / tot
+    return float(missed), float(extra)
+
+
+def test_silhouettes_against_true_masks(silhouette_masks):
+    missed, extra = _missed_extra(*silhouette_masks)
     # generous masks: few object pixels missed (measured 2%: the lowest millimetres; 9% before the dissimilarity
     # took the larger of its two ways), false object pixels scattered over the noisy 16-spp paper (measured 71%
     # of the object's area; cut away by the other views)
     assert missed < 0.05 and extra < 1.0, (missed, extra)
+
+
+@pytest.mark.parametrize("broken", ["eroded 2 px", "every pixel object"])
+def test_broken_silhouettes_fail_the_bounds(silhouette_masks, broken):
+    """A test of the test (tests/broken.py): the estimated masks eroded by two pixels (a tight segmentation) miss
+    too much of the object, and a mask that calls everything object claims far too much (measured: 15.7% missed;
+    14 x the object's area extra)."""
+    import cv2
+
+    true, est = silhouette_masks
+    if broken.startswith("eroded"):
+        bad = [(cv2.erode((m & k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0, k) for m, k in est]
+    else:
+        bad = [(np.ones_like(m), np.ones_like(k)) for m, k in est]
+    missed, extra = _missed_extra(true, bad)
+    print(broken, missed, extra)
+    assert not (missed < 0.05 and extra < 1.0), (missed, extra)
 
 
 # --------------------------------------------------------------------------------------------- the modules
@@ -126,6 +223,11 @@ def test_plane_fit_recovers_tilted_plane_with_outliers():
     assert fit.tilt_deg == pytest.approx(2.0, abs=0.01)
     assert fit.offset_mm == pytest.approx(3.0, abs=0.02)
     assert fit.rms_mm == pytest.approx(0.1, abs=0.01)
+    # a test of the test: an inlier threshold so loose that the object's points count (a least-squares fit through
+    # the outliers) misses the offset and RMS bounds (measured 5.7 mm offset, 9.1 mm RMS)
+    bad = fit_plane(p, threshold=1.0)
+    print("loose threshold", bad.n_inliers, bad.tilt_deg, bad.offset_mm, bad.rms_mm)
+    assert not (abs(bad.offset_mm - 3.0) <= 0.02 and abs(bad.rms_mm - 0.1) <= 0.01), bad
 
 
 def test_surface_nets_sphere():
@@ -140,6 +242,13 @@ def test_surface_nets_sphere():
     assert np.abs(d - r).max() < 0.1 * h  # sub-voxel: one vertex per cell at the mean of its edge crossings
     p, n = sample_surface(mesh, 2000, with_normals=True)
     assert np.mean(np.einsum("ij,ij->i", p, n) > 0) > 0.99  # outward-facing triangles
+    # tests of the test: vertices at their cells' centres (no sub-voxel placement), and the faces wound the
+    # other way, miss the bounds (measured 0.83 h off the sphere; inward normals)
+    snapped = (np.floor((mesh.vertices - g[0]) / h) + 0.5) * h + g[0]
+    print("snapped", np.abs(np.linalg.norm(snapped, axis=1) - r).max() / h)
+    assert not np.abs(np.linalg.norm(snapped, axis=1) - r).max() < 0.1 * h
+    p, n = sample_surface(MeshData(mesh.vertices, mesh.faces[:, ::-1].copy()), 2000, with_normals=True)
+    assert not np.mean(np.einsum("ij,ij->i", p, n) > 0) > 0.99
 
 
 def test_unit_detection_and_implausible_model():

@@ -69,6 +69,28 @@ def test_cameras_match_truth(sfm_run):
         assert img.shape[:2] == (e.height, e.width)
 
 
+@pytest.mark.parametrize("broken", ["scaled 1% (a misread square size)", "turned 0.5 degree about the vertical",
+                                    "shifted 3 mm"])
+def test_a_broken_alignment_fails_the_camera_bounds(sfm_run, broken):
+    """A test of the test (tests/broken.py): the stage's cameras carried by a broken alignment to the board
+    (tests/test_sfm.py's) miss the bounds of test_cameras_match_truth (measured, views' mean centre / rotation error
+    and the target's: 6.1 mm / 0.21 deg, 5.4 mm scaled; 3.0 mm / 0.52 deg, 2.9 mm / 0.46 deg turned; 3.6 mm / 0.21 deg,
+    2.8 mm shifted; bounds 3.0 mm / 0.35 deg, target 2.5 mm / 0.3 deg)."""
+    from objcam.sfm.align import camera_difference
+    from tests.test_sfm import broken_alignments, moved
+
+    cap, work, _, _ = sfm_run
+    sim = broken_alignments()[broken]
+    views = {k: (moved(e, sim), t) for k, (_, _, e, t) in _errors(cap, work, "views").items()}
+    c, r = np.array([camera_difference(e, t) for e, t in views.values()]).T
+    c *= 1000
+    (_, _, e, t), = _errors(cap, work, "targets").values()
+    dt, at = camera_difference(moved(e, sim), t)
+    print(broken, c.mean(), c.max(), r.mean(), r.max(), dt * 1000, at)
+    assert not (c.mean() < 3.0 and c.max() < 6.0 and r.mean() < 0.35 and r.max() < 0.8)
+    assert not (dt * 1000 < 2.5 and at < 0.3)
+
+
 def test_report_points_and_colmap_model(sfm_run):
     import pycolmap
 

@@ -61,10 +61,11 @@ def sensor_xml(cam: Camera, sensor_id: str, indent: str = "    ") -> str:
         f'{i}</sensor>'])
 
 
-def _bsdf_xml(rgb: tuple[float, float, float] | None, texture: str | None) -> str:
+def _bsdf_xml(rgb: tuple[float, float, float] | None, texture: str | None, nearest: bool = False) -> str:
     if texture is not None:
+        filt = '<string name="filter_type" value="nearest"/>' if nearest else ""
         refl = (f'<texture type="bitmap" name="reflectance"><string name="filename" value={quoteattr(texture)}/>'
-                '<boolean name="raw" value="true"/><string name="wrap_mode" value="clamp"/></texture>')
+                f'<boolean name="raw" value="true"/><string name="wrap_mode" value="clamp"/>{filt}</texture>')
     else:
         r, g, b = rgb if rgb is not None else (0.5, 0.5, 0.5)
         refl = f'<rgb name="reflectance" value="{r!r}, {g!r}, {b!r}"/>'
@@ -72,10 +73,11 @@ def _bsdf_xml(rgb: tuple[float, float, float] | None, texture: str | None) -> st
 
 
 def write_scene_xml(path: Path, cam: Camera, target: str, envmap_file: str,
-                    shapes: list[tuple[str, str, tuple[float, float, float] | None, str | None]],
+                    shapes: list[tuple[str, str, tuple[float, float, float] | None, str | None, bool]],
                     max_depth: int, spp: int = 256) -> Path:
-    """Write the scene (module docstring). ``shapes``: (name, OBJ path, rgb or None, albedo EXR path or None), paths
-    relative to ``path``'s folder (Mitsuba resolves them there)."""
+    """Write the scene (module docstring). ``shapes``: (name, OBJ path, rgb or None, albedo EXR path or None,
+    whether the texture is looked up without interpolation), paths relative to ``path``'s folder (Mitsuba resolves
+    them there)."""
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
              f"<!-- objcam export: target {target}; world metres, z up; render with: mitsuba {path.name} -->",
              '<scene version="3.0.0">',
@@ -87,11 +89,11 @@ def write_scene_xml(path: Path, cam: Camera, target: str, envmap_file: str,
              f'        <string name="filename" value={quoteattr(envmap_file)}/>',
              f'        <transform name="to_world"><matrix value="{_matrix(MITSUBA_TO_WORLD)}"/></transform>',
              '    </emitter>']
-    for name, obj, rgb, tex in shapes:
+    for name, obj, rgb, tex, nearest in shapes:
         lines += [f'    <shape type="obj" id={quoteattr(name)}>',
                   f'        <string name="filename" value={quoteattr(obj)}/>',
                   '        <boolean name="face_normals" value="true"/>',
-                  f"        {_bsdf_xml(rgb, tex)}",
+                  f"        {_bsdf_xml(rgb, tex, nearest)}",
                   '    </shape>']
     lines.append("</scene>")
     atomic_write_text(path, "\n".join(lines) + "\n")

@@ -89,6 +89,7 @@ def _view_cameras(work: Path) -> dict:
 
 def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> dict:
     """Write every export of the work folder ``work`` into ``out``; returns export.json's content."""
+    from objcam.export.bake import albedo_views, bake_albedo
     from objcam.export.blender import write_blender_script
     from objcam.export.cameras import write_colmap_text, write_transforms_json
     from objcam.export.envmaps import write_envmap
@@ -111,12 +112,22 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
     record: dict = {"format": 1, "work": str(work), "envmap_convention": "standard lat-long (data_layout.md): "
                     "u = 0.5 - atan2(y, x) / (2 pi), row 0 the zenith", "world": "metres, z up", "targets": {},
                     "meshes": {}, "warnings": []}
-    # surfaces
-    shapes = []
-    for name, mesh_rel, value in (("object", scene.description.object_mesh, scene.description.albedo_object),
-                                  ("support", scene.description.support_mesh, scene.description.albedo_support)):
-        mesh = MeshData.load_npz(scene.folder / mesh_rel)
-        rgb, tex, source = _albedo(value, scene.folder)
+    # surfaces: an unknown albedo is baked from the solve's per-pixel estimate (objcam.export.bake)
+    downsample = {t.name: int(load_transport(work / "transport", t.name, load_A=False).downsample)
+                  for t in scene.targets}
+    meshes = {"object": MeshData.load_npz(scene.folder / scene.description.object_mesh),
+              "support": MeshData.load_npz(scene.folder / scene.description.support_mesh)}
+    views, unbaked, shapes = None, False, []
+    for name, value in (("object", scene.description.albedo_object), ("support", scene.description.albedo_support)):
+        mesh, baked = meshes[name], None
+        if not value.known:
+            views = albedo_views(work / "solve", scene.targets, downsample) if views is None else views
+            baked = bake_albedo(mesh, [m for k, m in meshes.items() if k != name], views) if views else None
+        if baked is not None:
+            mesh, rgb, tex, source = baked.mesh, None, baked.texture, "baked from the solve's per-pixel albedo"
+        else:
+            rgb, tex, source = _albedo(value, scene.folder)
+            unbaked = unbaked or not value.known
         if tex is not None and mesh.uv is None:
             record["warnings"].append(f"{name}: albedo texture without UVs on the mesh: exported as its mean")
             rgb, tex = tuple(float(c) for c in tex.reshape(-1, 3).mean(axis=0)), None
@@ -126,12 +137,16 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
             write_exr(out / "meshes" / f"{name}_albedo.exr", tex.astype(np.float32))
             files.append(out / "meshes" / f"{name}_albedo.exr")
             tex_rel = f"../meshes/{name}_albedo.exr"
-        shapes.append((name, f"../meshes/{name}.obj", rgb, tex_rel))
+        # a baked texture is looked up without interpolation: a bilinear lookup would mix neighbouring pixels' albedo
+        shapes.append((name, f"../meshes/{name}.obj", rgb, tex_rel, baked is not None))
         record["meshes"][name] = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
                                   "albedo": list(rgb) if rgb is not None else "texture", "albedo_source": source}
-        if not value.known:
-            record["warnings"].append(f"{name} albedo unknown: exported as its {source.split(':')[0]}; the solve "
-                                      "estimated it per pixel, so the Mitsuba scenes only approximate its prediction")
+        if baked is not None:
+            record["meshes"][name]["bake"] = baked.record
+        elif not value.known:
+            record["warnings"].append(f"{name} albedo unknown: exported as its {source.split(':')[0]}; no camera's "
+                                      "estimated albedo sees it, so the Mitsuba scenes only approximate the solve's "
+                                      "prediction")
     # envmaps, images, Mitsuba scenes
     cameras, image_names = {}, {}
     for t in scene.targets:
@@ -156,7 +171,7 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
                                      "transport_model": tr.model, "downsample": int(tr.downsample),
                                      "prediction": str(sdir / "prediction.exr")}
         sinfo = _json(sdir / "solve.json")
-        if sinfo.get("albedo") == "unknown" and sinfo.get("scale_ambiguous"):
+        if unbaked and sinfo.get("albedo") == "unknown" and sinfo.get("scale_ambiguous"):
             # envmap and albedo are known only up to one scale per channel, and the exported albedo (the texture
             # stage's estimate) is not the solve's: choose that scale so the exported scene renders the prediction
             s = _fit_scale(xml, sdir / "prediction.exr", int(tr.downsample))
@@ -179,8 +194,10 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
     files += write_colmap_text(out / "colmap", cameras, image_names)
     files.append(write_transforms_json(out / "transforms.json", cameras, image_names))
     first = scene.targets[0].name
-    files.append(write_blender_script(out / "blender_scene.py", f"envmaps/{first}.exr",
-                                      ["meshes/object.obj", "meshes/support.obj"], cameras))
+    blender_meshes = [{"obj": obj[3:], "texture": tex[3:] if tex else None, "rgb": list(rgb) if rgb else None,
+                       "nearest": nearest} for _, obj, rgb, tex, nearest in shapes]  # paths from OUT: drop "../"
+    files.append(write_blender_script(out / "blender_scene.py", f"envmaps/{first}.exr", blender_meshes, cameras,
+                                      record["targets"][first]["max_depth"], opts.spp))
     record["cameras"] = sorted(cameras)
     record["files"] = sorted(str(p.relative_to(out)) for p in set(files))
     atomic_write_text(out / MARKER, json.dumps(record, indent=2))

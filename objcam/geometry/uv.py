@@ -13,18 +13,28 @@ from objcam.scene import MeshData
 
 def atlas(mesh: MeshData, resolution: int, padding: int = 2) -> MeshData:
     """``mesh`` with an xatlas UV atlas packed for a ``resolution``^2 texture (vertices split along seams)."""
+    return atlas_sized(mesh, resolution=resolution, padding=padding)[0]
+
+
+def atlas_sized(mesh: MeshData, texels_per_unit: float = 0.0, resolution: int = 0,
+                padding: int = 2) -> tuple[MeshData, tuple[int, int], float]:
+    """An xatlas UV atlas of ``mesh`` at ``texels_per_unit`` texels per metre (0: fitted to ``resolution``) packed
+    into a ``resolution``^2 texture (0: as large as the density needs). Returns the mesh (vertices split along
+    seams, faces in the same order), the texture's (rows, columns) and the texels per metre achieved."""
     import xatlas
 
     at = xatlas.Atlas()
     at.add_mesh(np.ascontiguousarray(mesh.vertices, np.float32), np.ascontiguousarray(mesh.faces, np.uint32))
     pack = xatlas.PackOptions()
     pack.resolution = int(resolution)
+    pack.texels_per_unit = float(texels_per_unit)
     pack.padding = int(padding)
     pack.bilinear = True  # leave room for bilinear lookups at chart borders
     at.generate(xatlas.ChartOptions(), pack)
     vmap, faces, uv = at[0]
-    return MeshData(np.ascontiguousarray(mesh.vertices[vmap], np.float32), faces.astype(np.uint32),
-                    uv.astype(np.float32))
+    out = MeshData(np.ascontiguousarray(mesh.vertices[vmap], np.float32), faces.astype(np.uint32),
+                   uv.astype(np.float32))
+    return out, (int(at.height), int(at.width)), float(at.texels_per_unit)
 
 
 def rasterize(mesh: MeshData, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
