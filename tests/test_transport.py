@@ -209,6 +209,10 @@ def test_stage_storage_dropped_pixels_texels_and_predict(art, model, tmp_path):
     assert T.A.dtype == np.float32 and T.channels == 1
     assert np.allclose(T.albedo[T.object_fraction == 1], 0.5) and np.allclose(T.albedo[T.object_fraction == 0], 0.8)
     assert not T.unknown_albedo.any()
+    # the stored Gram matrix: A^T A, read once and kept read-only (a solve asks for it several times)
+    G = T.gram()
+    assert G is T.gram() and not G.flags.writeable
+    assert np.allclose(G[0], T.A[0].astype(np.float64).T @ T.A[0].astype(np.float64), rtol=1e-6, atol=1e-9)
     # predict scatters A x into the image
     x = np.zeros((T.n_texels, 3), np.float32)
     x[5] = (1.0, 2.0, 3.0)

@@ -45,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from objcam.solvers.basis import group_sizes, merge_gram
+from objcam.solvers.multilevel import MIN_UNKNOWNS, aggregates
 from objcam.solvers.nnls import SolveResult, solve_exact
 from objcam.solvers.regularization import regularized_gram
 
@@ -115,6 +116,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         M = None if M is None else sp.csr_matrix(M @ P)
         ridge_w = group_sizes(P)
     n = D.shape[1]
+    # the first (cold) solves start from the coarse problem's free set (objcam.solvers.multilevel)
+    coarse = aggregates(D) if solve is solve_exact and n >= MIN_UNKNOWNS else None
     n_ch = sum(len(c) for c in chans)
     X = np.zeros((n, n_ch))
     if tone < 0 or tone_floor <= 0:
@@ -139,7 +142,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
             Q = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w)
-            res = solve(Q, B, passive0=passive[b]) if solve is solve_exact else solve(Q, B)
+            res = solve(Q, B, passive0=passive[b], coarse=coarse) if solve is solve_exact else solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0
             results.append(res)

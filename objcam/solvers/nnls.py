@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import lapack
 
+from objcam.solvers import multilevel
 from objcam.threads import single_blas_thread
 
 
@@ -282,6 +283,7 @@ def solve_exact(
     max_iter: int | None = None,
     passive0: np.ndarray | None = None,
     schur: bool | None = None,
+    coarse=None,
 ) -> SolveResult:
     """Exact minimiser of ``0.5 x^T Q x - b^T x`` over ``x >= 0`` for every column of ``B``.
 
@@ -297,6 +299,9 @@ def solve_exact(
     schur: solve the free blocks through one Cholesky of the whole Q and Schur complements over the zero set
         (:class:`_SchurFree`; fast when few variables are at 0) instead of one Cholesky per free block. None:
         when N >= 256; a solve whose zero set grows past N / 3 finishes with per-block factorisations.
+    coarse: optional (N, N_c) 0/1 sparse aggregation P_c (objcam.solvers.multilevel.aggregates): without
+        ``passive0`` and with N >= multilevel.MIN_UNKNOWNS, the first free set is that of the exact solution on
+        ``x = P_c z`` (a coarse-to-fine warm start; the minimiser is the same).
 
     Block principal pivoting with Cholesky of the free blocks; see the module docstring. Runs with one BLAS
     thread. Returns a :class:`SolveResult` with x (N, C), the Gram-form objective ``x^T Q x - 2 b^T x`` and
@@ -322,6 +327,11 @@ def solve_exact(
         bad = np.flatnonzero(dead & np.any(B2 > 0, axis=1))
         raise ValueError(f"objective unbounded: Q_ii = 0 but b_i > 0 for {bad.size} variable(s), e.g. {bad[0]}")
     live = np.flatnonzero(~dead)
+    t_coarse = None
+    if passive0 is None and coarse is not None and n >= multilevel.MIN_UNKNOWNS:
+        t_coarse = time.perf_counter()
+        passive0 = multilevel.coarse_passive(Q, B2, coarse, lambda Qc, Bc: solve_exact(Qc, Bc, tol=tol))
+        t_coarse = time.perf_counter() - t_coarse
 
     X = np.zeros((n, ncol))
     iters = 0
@@ -386,5 +396,6 @@ def solve_exact(
             "schur": bool(live.size and use_schur),
             "fixed_zero_variables": int(dead.sum()),
             "active": [int(v) for v in (X <= 0).sum(axis=0)],
+            **({"coarse_start_seconds": round(t_coarse, 4)} if t_coarse is not None else {}),
         },
     )

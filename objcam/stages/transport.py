@@ -100,7 +100,9 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     planned = {"bytes": 0, "seconds": 0.0}
     for cam_targets in groups.values():  # the size first: refuse what the machine cannot hold before building
         cam, f = cam_targets[0].camera, downsample_for(cam_targets[0].camera, params)
-        est = budget.estimate((cam.height // f) * (cam.width // f), 2 * fine_height * fine_height)
+        est = budget.estimate((cam.height // f) * (cam.width // f),
+                              budget.kept_texels(fine_height, desc.support_is_plane),
+                              1 if desc.albedo_is_grey() else 3)
         budget.check(est, inputs.capture / "capture.toml")
         planned = {"bytes": max(planned["bytes"], est["bytes"]), "seconds": planned["seconds"] + est["seconds"]}
     geo = SceneGeometry.load(desc, art.folder, env_height=fine_height,
@@ -134,7 +136,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         metrics.update(first)
     metrics.update(totals)
     metrics["cameras"] = len(groups)
-    metrics["planned_peak_gib"] = round(planned["bytes"] / 2**30, 3)  # objcam.transport.budget's estimate
+    metrics["planned_peak_gib"] = round(planned["bytes"] / 2**30, 6)  # objcam.transport.budget's estimate
     metrics["planned_seconds"] = round(planned["seconds"], 1)
     metrics["seconds_total"] = round(time.perf_counter() - t0, 3)
     chosen = ",".join(sorted({str(m.get("model")) for m in per_cam}))

@@ -1,5 +1,20 @@
-"""The transport's size before it is built: memory and time from the pixel and texel counts, refused when the
-machine cannot hold it (``--set transport.env_height=256`` would need a float64 Gram matrix of ~0.4 TB)."""
+"""The transport's size before it is built, and the known-albedo solve's after it: memory and time from the pixel
+and texel counts, refused when the machine cannot hold it (``--set transport.env_height=256`` on a capture
+without a support plane would need float64 Gram matrices of ~0.4 TB).
+
+What is counted, per camera (``channels`` 1 for a grey albedo, else 3; N the texels A keeps):
+
+* A as float32: pixels x N x channels x 4 bytes;
+* the Gram matrices A_c^T A_c as float64 (channels x N^2 x 8), stored beside A and read by the solve;
+* the solve's working copies: per channel and per concurrent solve (the edge prior's luminance and chroma
+  solves run side by side) the regularised Gram matrix and its merged form (objcam.solvers.basis), and the
+  free blocks' factors: ``SOLVE_COPIES`` x N^2 x 8 bytes per channel.
+
+N: with a support plane A keeps the texels above its horizon and the row below it (the sky a pixel near the
+plane's edge sees past it): ``(H/2 + 1) x 2H`` (measured: 1,088 at 32 x 64, 4,224 at 64 x 128 on the demo); without
+one every texel. Time: the columns of A, the Gram product and the edge solve's factorisations, each from a rate
+measured on this project's 2-core machine (constants below).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +27,12 @@ from objcam.errors import StageError
 SECONDS_PER_PAIR = 6e-7
 GRAM_FLOPS = 2e10
 MEMORY_SHARE = 0.8  # of the machine's physical memory one build may plan to use
+# The known-albedo edge solve's working set: G, Q and the merged Q of two concurrent solves, and a factor, per
+# channel (peak RSS of the solve alone at 64 x 128, demo capture: see bench/results.md "Issue 26").
+SOLVE_COPIES = 5
+# The default edge solve's seconds per texel^3 (CPU; 2 x 7 exact solves of ~15 free-block factorisations each):
+# measured 23-26 s at 4,224 texels and ~1.05 s at 1,088 on the demo capture, loaded 2-core machine.
+SOLVE_SECONDS_PER_TEXEL3 = 3.3e-10
 
 
 def machine_memory() -> int:
@@ -22,19 +43,32 @@ def machine_memory() -> int:
         return 0
 
 
+def kept_texels(env_height: int, support_plane: bool) -> int:
+    """Texels A will keep (an upper bound): above a support plane's horizon plus the row below it, else all."""
+    h, w = int(env_height), 2 * int(env_height)
+    return min(h, h // 2 + 1) * w if support_plane else h * w
+
+
 def estimate(pixels: int, texels: int, channels: int = 3) -> dict:
-    """Peak bytes (A as float32, the Gram matrix and the solve's factor as float64) and seconds of one camera."""
+    """Peak bytes and seconds of one camera's A, Gram matrices and known-albedo solve (module docstring).
+    Returns {"bytes", "seconds", "pixels", "texels", "channels", "parts": {name: bytes or seconds}}."""
     a_bytes = 4 * pixels * texels * channels
     gram_bytes = 8 * channels * texels * texels
-    seconds = SECONDS_PER_PAIR * pixels * texels + pixels * texels * texels * channels / GRAM_FLOPS
-    return {"bytes": a_bytes + 2 * gram_bytes, "seconds": seconds, "pixels": pixels, "texels": texels}
+    solve_bytes = SOLVE_COPIES * gram_bytes
+    a_s = SECONDS_PER_PAIR * pixels * texels
+    gram_s = pixels * texels * texels * channels / GRAM_FLOPS
+    solve_s = SOLVE_SECONDS_PER_TEXEL3 * float(texels) ** 3  # three colour columns with any channel count
+    return {"bytes": a_bytes + gram_bytes + solve_bytes, "seconds": a_s + gram_s + solve_s, "pixels": pixels,
+            "texels": texels, "channels": channels,
+            "parts": {"a_bytes": a_bytes, "gram_bytes": gram_bytes, "solve_bytes": solve_bytes,
+                      "a_seconds": a_s, "gram_seconds": gram_s, "solve_seconds": solve_s}}
 
 
 def check(est: dict, toml, memory: int | None = None) -> None:
     """Refuse a build past ``MEMORY_SHARE`` of the machine's memory, naming the numbers and what to change."""
     memory = machine_memory() if memory is None else memory
     if memory and est["bytes"] > MEMORY_SHARE * memory:
-        raise StageError(f"the transport would need about {est['bytes'] / 2**30:,.1f} GiB of memory "
-                         f"({est['pixels']:,} pixels x {est['texels']:,} texels; about {est['seconds'] / 3600:,.1f} h) "
-                         f"and this machine has {memory / 2**30:,.1f} GiB", toml,
+        raise StageError(f"the transport and its solve would need about {est['bytes'] / 2**30:,.1f} GiB of memory "
+                         f"({est['pixels']:,} pixels x {est['texels']:,} texels; about {est['seconds'] / 3600:,.1f} h)"
+                         f" and this machine has {memory / 2**30:,.1f} GiB", toml,
                          "lower transport.env_height (or transport.supersample, transport.max_pixels)")

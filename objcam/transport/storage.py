@@ -174,6 +174,7 @@ class Transport:
     camera: Camera
     attrs: dict = field(default_factory=dict)
     folder: Path | None = None  # the zarr group this A was read from (identifies A across targets)
+    _gram: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)  # gram.npy, read once
 
     @property
     def channels(self) -> int:
@@ -242,9 +243,14 @@ class Transport:
 
     def gram(self) -> np.ndarray:
         """(C, N, N) float64 A_c^T A_c over all kept pixels: read from ``gram.npy`` (written by the transport
-        stage, so a solve costs no O(M N^2) work), computed when absent."""
+        stage, so a solve costs no O(M N^2) work), computed when absent. The file is read once and kept,
+        read-only (a solve asks for it several times: 3 reads of 140 MB at 64 x 128)."""
+        if self._gram is not None:
+            return self._gram
         if self.folder is not None and (self.folder / GRAM).is_file():
-            return np.load(self.folder / GRAM)
+            self._gram = np.load(self.folder / GRAM)
+            self._gram.setflags(write=False)
+            return self._gram
         from objcam.solvers import gram
 
         return np.stack([gram(self.A[c]) for c in range(self.channels)])

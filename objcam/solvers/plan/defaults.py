@@ -52,6 +52,14 @@ REFINE_FRACTION = 0.2
 #: Joint solve: the Huber threshold (its edge prior is untoned; 0.005 measured on the bench scenes).
 EDGE_EPS_JOINT = 0.005
 LS_RANGE = (3e-4, 0.3)
+#: The envmap height (rows) at which LS_NOISE_FACTOR, EDGE_LS_PER_SIGMA, KNOWN_LS_REL and LS_RANGE were measured.
+#: The weights are relative to mean(diag(A^T A)) and A's columns scale with the texel's solid angle (~1/H^2), so
+#: that mean falls ~H^-4, while ||D x||^2 (objcam.solvers.regularization) and the Huber prior (objcam.solvers.edges:
+#: s x sum of huber(r_e), s ~ 1/H, as many edges as texels) do not change with H: the same prior at height H is the
+#: relative weight x (H / LS_HEIGHT)^4 (derived, not tuned). Measured (issue 26, demo capture bunny/forest at 2.3%
+#: noise, 64 x 128 area-averaged to 32 x 64 against the truth): without it SSIM 0.19, brightest source 44 deg off;
+#: with it 0.32 and 0.04 deg, against 0.31 and 0.16 deg solved at 32 x 64 (bench/results.md "Issue 26").
+LS_HEIGHT = 32
 #: Joint solve with auto_reg: the smoothness (relative to A', albedo 1) of the provisional solve whose albedo the
 #: criterion is evaluated at. On the 3-illumination 'dots' scene (bench/results.md) GCV, the discrepancy principle
 #: and the L-curve all chose the floor of their grid (~1e-8: envmap SSIM 0.10 against 0.31-0.34 at fixed weights),

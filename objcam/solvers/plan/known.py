@@ -71,7 +71,7 @@ def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear:
     ls, ls_source = params.ls, "param"
     if ls is None:
         ls, ls_source = noise_ls(target, d.pooled, d.pooled_ok, params, tr.downsample, linear=linear,
-                                 supersample=tr.env_height // tr.output_height)
+                                 supersample=tr.env_height // tr.output_height, height=tr.output_height)
     if rule is not None:
         # one weight for the target's channels: the criterion on the grey (channel-mean) transport
         Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)

@@ -17,6 +17,7 @@ from objcam.solvers.plan.defaults import (
     EDGE_LS_PER_SIGMA,
     EDGE_LS_PER_SIGMA_SUPERSAMPLED,
     KNOWN_LS_REL,
+    LS_HEIGHT,
     LS_NOISE_FACTOR,
     LS_RANGE,
     TEXEL_GROUP_JOINT,
@@ -42,12 +43,25 @@ def basis_info(texel_index: np.ndarray, P, params: SolveParams, known: bool) -> 
 
 
 def noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolveParams, f: int = 1,
-             linear: bool = False, supersample: int = 1) -> tuple[float, str]:
+             linear: bool = False, supersample: int = 1, height: int = LS_HEIGHT) -> tuple[float, str]:
     """ls from the noise of one fitted pixel (the target's relative noise_sigma, given per photo pixel, over the
     f x f pooling; else estimated from the pooled image): ls_noise_factor x sigma^2, or x sigma when ``linear``
     (the known-albedo edge prior), within LS_RANGE (the noise sets how much the data can be trusted against the
     prior; measured on 128 x 128 targets, and transport's automatic pooling keeps larger photos at 8-32k fitted
-    pixels)."""
+    pixels); times :func:`height_factor` for an envmap of ``height`` rows (the output grid's)."""
+    ls, source = _noise_ls(target, pooled, pooled_ok, params, f, linear, supersample)
+    if height == LS_HEIGHT:
+        return ls, source
+    return ls * height_factor(height), f"{source}, x {height_factor(height):g} for {height} rows"
+
+
+def height_factor(height: int) -> float:
+    """(height / LS_HEIGHT)^4: the same prior at another envmap height (objcam.solvers.plan.defaults.LS_HEIGHT)."""
+    return (float(height) / LS_HEIGHT) ** 4
+
+
+def _noise_ls(target, pooled, pooled_ok, params: SolveParams, f: int, linear: bool,
+              supersample: int) -> tuple[float, str]:
     sigma, source = fitted_noise(target, pooled, pooled_ok, f)
     source = {"estimated": "estimated noise"}.get(source, source)
     if not sigma:

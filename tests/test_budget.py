@@ -1,0 +1,39 @@
+"""The transport's memory and time estimate (objcam.transport.budget) against what the builds and solves used, and
+its refusal with a small fake machine."""
+
+from __future__ import annotations
+
+import pytest
+
+from objcam.errors import StageError
+from objcam.transport import budget
+
+
+def test_kept_texels_match_the_demo_transports():
+    # measured: A keeps 1,088 texels at 32 x 64 and 4,224 at 64 x 128 above the demo's support plane
+    assert budget.kept_texels(32, True) == 1088 and budget.kept_texels(64, True) == 4224
+    assert budget.kept_texels(32, False) == 2048 and budget.kept_texels(2, True) == 8  # both rows
+
+
+def test_estimate_parts_and_scaling():
+    e = budget.estimate(16384, 4224, 1)
+    p = e["parts"]
+    assert p["a_bytes"] == 4 * 16384 * 4224 and p["gram_bytes"] == 8 * 4224**2
+    assert e["bytes"] == p["a_bytes"] + p["gram_bytes"] + p["solve_bytes"]
+    # measured on the demo capture at 64 x 128 (direct A, loaded 2-core machine): A 91 s, its solve 23-26 s of
+    # CPU; the estimate is within 2.5x of both (A's rate was measured at 32 x 64, where fewer pairs need refining)
+    assert 91 / 2.5 < p["a_seconds"] < 91 * 2.5 and 25 / 2.5 < p["solve_seconds"] < 25 * 2.5
+    # 128 x 256: the Gram matrix grows 16x, A 4x
+    e2 = budget.estimate(16384, budget.kept_texels(128, True), 1)
+    assert e2["parts"]["gram_bytes"] / p["gram_bytes"] == pytest.approx((16640 / 4224) ** 2)
+    assert 12 * 2**30 < e2["bytes"] < 16 * 2**30  # ~13.8 GiB: past the issue's 12 GB
+
+
+def test_refusal_names_the_numbers_and_the_parameter(tmp_path):
+    e = budget.estimate(16384, 4224, 1)
+    budget.check(e, tmp_path / "capture.toml", memory=8 * 2**30)  # fits: nothing raised
+    with pytest.raises(StageError) as info:
+        budget.check(e, tmp_path / "capture.toml", memory=2**30)  # a fake 1 GiB machine
+    msg = str(info.value)
+    assert "\n" not in msg and "transport.env_height" in msg and "4,224 texels" in msg and "1.0 GiB" in msg
+    assert "capture.toml" in msg
