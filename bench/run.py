@@ -56,6 +56,22 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def convert_old_render(old: Path, new: Path) -> None:
+    """A cached render from before the standard lat-long files (its folder has no ``-std`` suffix): the same
+    render with its truth envmap rewritten in the standard layout (objcam.envmap.to_file; the photo does not
+    depend on how the truth is stored), so a 16k-spp target is not rendered again."""
+    from objcam.envmap import to_file
+    from objcam.image_io import read_exr, write_exr
+
+    tmp = new.with_name(new.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(old, tmp)
+    truth = tmp / "truth" / "envmap.exr"
+    write_exr(truth, to_file(read_exr(truth)))
+    tmp.rename(new)
+    log(f"  converted the cached render {old.name} to standard lat-long truth files")
+
+
 def synth_targets(out: Path, hdris, spp: int, size: int, noise_rel: float, estimator: str = "path") -> Path:
     """Render each HDRI's target (cached by its parameters) and assemble one capture with all of them.
 
@@ -64,7 +80,9 @@ def synth_targets(out: Path, hdris, spp: int, size: int, noise_rel: float, estim
     from objcam.synth.capture import SynthParams, synthesize
 
     capture = out / "capture"
-    params_key = json.dumps({"hdris": list(hdris), "spp": spp, "size": size, "noise": noise_rel}
+    # latlong: the truth files' layout (issue 23's standard lat-long convention); a capture assembled from renders
+    # written before it holds mirrored truths, so the key changes and the capture is rebuilt
+    params_key = json.dumps({"hdris": list(hdris), "spp": spp, "size": size, "noise": noise_rel, "latlong": "standard"}
                             | ({"estimator": estimator} if estimator != "path" else {}))
     if (capture / "bench_params.json").is_file() and (capture / "bench_params.json").read_text() == params_key:
         return capture
@@ -73,8 +91,10 @@ def synth_targets(out: Path, hdris, spp: int, size: int, noise_rel: float, estim
     (capture / "truth").mkdir()
     truth_map, toml_targets = {}, []
     for h in hdris:
-        src = out / "synth" / f"{h}-{spp}spp-{size}px" if estimator == "path" else \
-            out / "synth" / f"{h}-{estimator}-{spp}spp-{size}px"
+        name = f"{h}-{spp}spp-{size}px" if estimator == "path" else f"{h}-{estimator}-{spp}spp-{size}px"
+        src = out / "synth" / f"{name}-std"
+        if not (src / "capture.toml").is_file() and (out / "synth" / name / "capture.toml").is_file():
+            convert_old_render(out / "synth" / name, src)
         if not (src / "capture.toml").is_file():
             shutil.rmtree(src, ignore_errors=True)
             t0 = time.perf_counter()
