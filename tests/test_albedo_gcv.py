@@ -110,3 +110,25 @@ def test_weighted_chi2_and_the_score():
     assert s.gcv == pytest.approx(60.0 * 30 / (30 - 12) ** 2)
     assert score(0.1, 10, chi2, n, 3).gcv == float("inf")  # no degree of freedom left
     np.testing.assert_allclose(ladder(0.006, 1.6, 4.0), [0.006, 0.024, 0.096, 0.384, 1.536])
+
+
+def test_the_known_pixels_pin_the_scale_of_the_final_envmaps():
+    """scale_step.known_pixel_scale: envmaps 7% / 3% / 12% too bright per channel with the free albedo as much too
+    dark fit the free pixels exactly; the pixels of known albedo alone say by how much (noise-free: exactly)."""
+    from objcam.solvers.joint.scale_step import known_pixel_scale
+
+    rng = np.random.default_rng(4)
+    X_true = rng.uniform(0.1, 2.0, (6, 2, 3))
+    k = np.array([1.07, 1.03, 1.12])
+    As, Ys, rhos, fixed = [], [], [], []
+    for m in (40, 30):
+        A = rng.random((m, 6)).astype(np.float32)
+        fx = rng.random(m) < 0.2
+        rho = rng.uniform(0.1, 0.9, (m, 3))
+        Ys.append(rho[:, None, :] * np.einsum("mn,nlc->mlc", A.astype(np.float64), X_true))
+        rhos.append(np.where(fx[:, None], rho, rho / k))
+        As.append(A)
+        fixed.append(fx)
+    np.testing.assert_allclose(known_pixel_scale(As, Ys, rhos, X_true * k, fixed), k, rtol=1e-6)
+    # no pixel of known albedo: nothing pins it
+    np.testing.assert_array_equal(known_pixel_scale(As, Ys, rhos, X_true * k, [~f & False for f in fixed]), 1.0)
