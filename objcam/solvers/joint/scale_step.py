@@ -225,3 +225,25 @@ def _apply_scale(J: JointProblem, rho, X: np.ndarray, S, c: int, cs: float) -> N
         for k in range(P):
             rho[k][:, c], S[k][:, :, c] = saved[0][k], saved[1][k]
         X[:, :, c] = saved[2]
+
+
+def known_pixel_scale(As: list[np.ndarray], Ys: list[np.ndarray], rhos: list[np.ndarray], X: np.ndarray,
+                      fixed: list[np.ndarray]) -> np.ndarray:
+    """(C,) the factor c per channel that the pixels of known albedo pin at the envmaps X, by their data alone: the
+    least squares of ``y = rho A' x / c`` over those pixels, ``1 / c = sum p y / sum p^2`` with ``p = rho A' x``
+    (1 where no known pixel is lit). The rule of :func:`pinned_scale` for a state that no joint problem holds (the
+    final step's envmaps, solved again at its albedo: their level then follows the free pixels').
+
+    As: per camera A' (M_p, N); Ys: (M_p, L, C); rhos: (M_p, C); X: (N, L, C); fixed: (M_p,) bool."""
+    C = X.shape[2]
+    num, den = np.zeros(C), np.zeros(C)
+    Xf = X.reshape(X.shape[0], -1)
+    for A, Y, rho, fx in zip(As, Ys, rhos, fixed):
+        fx = np.asarray(fx, bool)
+        if not fx.any():
+            continue
+        P = rho[fx][:, None, :] * (np.asarray(A[fx], np.float64) @ Xf).reshape(-1, *Y.shape[1:])
+        num += np.einsum("mlc,mlc->c", P, Y[fx])
+        den += np.einsum("mlc,mlc->c", P, P)
+    ok = (num > 0) & (den > 0)
+    return np.where(ok, den / np.where(ok, num, 1.0), 1.0)

@@ -100,6 +100,12 @@ LP_ONE_ILLUMINATION = 1e-2
 #: round 0.667, two 0.675 (~1.2 s more); with the regions' least-squares refit (objcam.solvers.albedo_tv) 0.710,
 #: albedo 0.0021.
 ALBEDO_TV = 0.006
+#: ... the smallest contrast of the GCV ladder (solve.albedo_tv_rule=gcv, objcam.solvers.albedo_gcv): the contrasts
+#: ALBEDO_TV x ALBEDO_TV_FACTOR^k up to ALBEDO_TV_TOP. Each step quadruples the variation flattened (a coarse ladder:
+#: every candidate costs a TV step and the envmaps' solve); above ~1 x the median albedo every neighbouring pair
+#: joins (one region per connected support), so the top ends the ladder there.
+ALBEDO_TV_FACTOR = 4.0
+ALBEDO_TV_TOP = 1.6
 FINAL_ROUNDS = 2
 #: Reweighting steps of the edge solve in the final step's rounds before the last (their envmaps only feed the next
 #: albedo step). Measured on the dots bench scene, two rounds: 6 / 2 / 1 steps, SSIM 0.6743 / 0.6750 / 0.6731, the

@@ -11,6 +11,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from objcam.solvers.plan.defaults import (
     ALBEDO_TV,
+    ALBEDO_TV_FACTOR,
+    ALBEDO_TV_TOP,
     BOUNCE_FIRST_STRIDE,
     CHROMA_LS_FACTOR,
     EDGE_EPS_JOINT,
@@ -116,7 +118,13 @@ class SolveParams(BaseModel):
     albedo_tv: float = Field(ALBEDO_TV, ge=0, description="unknown albedo, lp = 0, final_envmap=known: weight of the "
                              "total-variation albedo prior of the final step, as a contrast relative to the median "
                              "albedo (objcam.solvers.albedo_tv: variations below about it are flattened, a print's "
-                             "edges stay); 0: off")
+                             "edges stay); with albedo_tv_rule=gcv the smallest contrast tried; 0: off")
+    albedo_tv_rule: Literal["gcv", "fixed"] = Field(
+        "gcv", description="how the final step's TV contrast is chosen: 'gcv' tries albedo_tv x "
+        f"{ALBEDO_TV_FACTOR:g}^k up to {ALBEDO_TV_TOP:g} and keeps the one with the lowest generalised "
+        "cross-validation score of the noise-weighted fit (objcam.solvers.albedo_gcv: a uniform support merges into "
+        "one region, a print keeps its dots; measured on issue 29's family and the dots scene, bench/results.md); "
+        "'fixed': albedo_tv as given")
     final_rounds: int = Field(FINAL_ROUNDS, ge=1, le=10, description="final_envmap=known with albedo_tv: rounds of "
                               "(the albedo's TV step at the current envmaps, every envmap at that albedo)")
     final_envmap: Literal["known", "joint"] = Field(
