@@ -35,6 +35,7 @@ import numpy as np
 
 from objcam.envmap import EnvGrid
 from objcam.scene import use_mitsuba
+from objcam.threads import parallel_map
 from objcam.transport.geometry import PixelSamples, SceneGeometry
 from objcam.transport.pixels import sobol4
 
@@ -292,18 +293,26 @@ class DirectModel:
         if not self.cull:  # brute force: trace every pair, plain estimator
             return zero, analytic, above
         rows = self.tab.rows[texels]
-        for r in np.unique(rows):
+        self._float32()
+
+        def one_row(r):
             sel = np.nonzero(rows == r)[0]
             if sel[-1] - sel[0] + 1 == sel.size:  # contiguous: slice, no fancy-index copies
                 sel = slice(int(sel[0]), int(sel[-1]) + 1)
             zero[:, sel], analytic[:, sel], above[:, sel] = self._classify_row(int(r), texels[sel])
+
+        # rows write disjoint columns; numpy releases the GIL on these (M, W) arrays: one row per core at a time
+        parallel_map(one_row, np.unique(rows))
         return zero, analytic, above
 
-    def _classify_row(self, r: int, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _float32(self):
         if self._f32 is None:
             self._f32 = (self.nbar.astype(np.float32), self.axis.astype(np.float32),
                          self.n_thr.astype(np.float32), self.occ_thr.astype(np.float32))
-        nbar, axis, n_thr, occ_thr = self._f32
+        return self._f32
+
+    def _classify_row(self, r: int, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nbar, axis, n_thr, occ_thr = self._float32()
         d = self.tab.dirs[texels].astype(np.float32).T  # (3, B)
         dn = nbar @ d
         thr = n_thr[:, r : r + 1]
