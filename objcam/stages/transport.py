@@ -86,7 +86,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     from objcam.transport.auto import estimate_relative_noise
     from objcam.transport.build import BuildSettings, build_camera
     from objcam.transport.geometry import SceneGeometry
-    from objcam.transport.storage import write_gram, write_index
+    from objcam.transport.engine import current
+    from objcam.transport.storage import write_index
 
     from objcam.transport.variant import activate
 
@@ -126,7 +127,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                  if params.model == "auto" else None)
         m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
                          targets=[t.name for t in targets], target_noise=noise)
-        m["gram_seconds"] = round(write_gram(inputs.out / sub), 3)
+        m["gram_seconds"] = round(current().write_gram(inputs.out / sub), 3)  # objcam.transport.engine
         per_cam.append(m)
         for t in targets:
             mapping[t.name] = sub

@@ -13,7 +13,7 @@ from objcam.envmap import EnvGrid
 from objcam.progress import bar
 from objcam.transport.geometry import SampleParts, SceneGeometry, primary_samples
 from objcam.transport.pixels import pool_target, pooled_shape
-from objcam.transport.storage import ColumnWriter, add_to_columns
+from objcam.transport.storage import ColumnWriter
 
 
 @dataclass
@@ -68,6 +68,9 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
     valids: the targets' (H, W) valid masks (pixels invalid in all of them are not computed).
     target_noise: (relative noise, where it came from) for model=auto; default 1% ("assumed").
     """
+    from objcam.transport.engine import current
+
+    engine = current()  # in this process, or shards on a Dask cluster (objcam.transport.shards)
     t0 = time.perf_counter()
     f, k = int(s.downsample), int(s.samples)
     hp, wp = pooled_shape(camera.height, camera.width, f)
@@ -115,10 +118,10 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                                              batch_rays=s.batch_rays, refine=s.refine, image_shape=(hp, wp)))
                           for (rows, ps), kk in zip(parts.parts, rays) if rows.size], m)
         rows_per = max(1, s.pair_budget // max(1, m * grid.width))
+        blocks = [np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
+                  for r0 in range(0, grid.height, rows_per)]
         with bar(total=n_total, desc=f"transport: direct K={k}", unit="texel") as pb:
-            for r0 in range(0, grid.height, rows_per):
-                tex = np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
-                cols = dm.columns(tex)
+            for tex, cols in engine.direct_columns(dm, blocks, folder):  # in order, wherever they were computed
                 nz = np.any(cols != 0, axis=(0, 1))
                 writer.append(tex[nz], cols[:, :, nz])
                 pb.update(tex.size)
@@ -175,7 +178,7 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                 guessed = bool(parts.unknown_albedo().any()) and geo.plane is not None
                 gi = GatherIndirect(geo, parts, texel_index, s.env_height, channels, gs, batch_rays=s.batch_rays,
                                     keep_parts=guessed)
-                add_to_columns(folder, lambda a, b: gi.columns(a, b))
+                engine.add_indirect(folder, gi)
                 metrics.update(gi.metrics())
                 if guessed:
                     from objcam.transport.storage import write_bounce
@@ -189,7 +192,9 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                                           s.correction_spp, s.auto_max_depth, s.seed, s.correction_scale, detail,
                                           s.correction_detail_spp)
                 metrics["correction_detail_pixels"] = int(detail.sum())
-                corr.compute_all()
+                corr.compute_all()  # path-traced renders: in this process whatever the engine
+                from objcam.transport.storage import add_to_columns
+
                 add_to_columns(folder, lambda a, b: corr.columns(a, b, channels))
                 metrics["correction_renders"] = corr.renders
             else:
@@ -203,6 +208,7 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
               "directions": dirs, "solid_angle": omega, "albedo": parts.albedo(),
               "unknown_albedo": parts.unknown_albedo(), "coverage": parts.coverage(),
               "object_fraction": parts.object_fraction()}
+    metrics.update(engine.metrics())
     metrics["texels_kept"] = int(texel_index.size)
     metrics["model"] = chosen
     metrics["seconds"] = round(time.perf_counter() - t0, 3)

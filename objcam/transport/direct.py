@@ -180,6 +180,9 @@ class DirectModel:
         self._dr = None
         self._f32 = None
 
+    def __getstate__(self) -> dict:
+        return self.__dict__ | {"_dr": None}  # Dr.Jit arrays stay in their process (rebuilt on first use)
+
     # ----------------------------------------------------------------------------------------- per-pixel bounds
     def _prepare_pixels(self) -> None:
         s, tab, geo = self.s, self.tab, self.geo

@@ -33,6 +33,15 @@ class SceneGeometry:
     env_height: int = 8  # of the envmap emitter (path renders)
     upsample: int = 8  # of its box bitmap (objcam.render.mitsuba_box_bitmap)
 
+    def __getstate__(self) -> dict:
+        # pickled as what loads it (a Dask worker rebuilds the Mitsuba scene from the shared scene artifact; the
+        # shape ids are this process's pointers, so they are found again there)
+        return {"desc": self.desc, "root": self.root, "env_height": self.env_height, "upsample": self.upsample}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(SceneGeometry.load(state["desc"], state["root"], state["env_height"],
+                                                state["upsample"]).__dict__)
+
     @classmethod
     def load(cls, desc: SceneDescription, root: str | Path, env_height: int = 8, upsample: int = 8) -> "SceneGeometry":
         """Build the Mitsuba scene (with an envmap emitter holding one lit texel, for path renders; ``upsample``:

@@ -1,0 +1,249 @@
+"""The transport's column shards as Dask tasks (``objcam run --cluster``; objcam.transport.engine's interface).
+
+The driver (the process running the pipeline) builds each model once -- the camera's samples and direct model,
+the gather's matrices -- and pickles it into the stage's temporary folder (``_shards/``, removed before the stage
+ends). A worker loads it once per camera (the Mitsuba scene is rebuilt from the scene artifact: the pickle holds
+only the path), computes its shards and writes them as zarr chunks into that folder:
+
+- direct light: one task per block of envmap rows, writing chunk [:, :, t0:t1] of ``_shards/<cam>/direct``
+  (one zarr chunk per block), read back in order by the driver into A;
+- indirect light (model auto, gather): one task per chunk of A's columns, adding its columns in place (chunks
+  are disjoint, so tasks never write the same chunk);
+- the Gram matrix: one task per block of A's rows, each writing A_r^T A_r (float64) beside the shards; the
+  driver sums them.
+
+Every task is a pure function of its inputs: a task lost with its worker is run again elsewhere (Dask reschedules
+it; ``retries`` more on errors) and writes the same bytes. Workers must see the work folder and the scene
+artifact at the same paths as the driver (a shared filesystem) and import the same objcam.
+"""
+
+from __future__ import annotations
+
+import pickle
+import shutil
+import time
+import uuid
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+# per worker process: the last contexts loaded (path -> model), so a worker loads each camera's model once
+_CONTEXTS: dict[str, object] = {}
+_KEEP = 2
+_STATS = ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined")
+
+
+def _write_context(path: Path, obj) -> str:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+    return str(path)
+
+
+def _context(path: str, variant: str):
+    """The model pickled at ``path``, loaded once per worker with Mitsuba's ``variant`` (the driver's) and Dr.Jit
+    on the worker's own threads."""
+    obj = _CONTEXTS.get(path)
+    if obj is None:
+        import drjit as dr
+
+        from objcam.scene import use_mitsuba
+
+        use_mitsuba(variant)
+        try:
+            from distributed import get_worker
+
+            dr.set_thread_count(max(1, int(get_worker().state.nthreads)))  # a single-thread worker uses one core
+        except (ImportError, ValueError):
+            pass  # not on a worker (tests calling a task directly)
+        with open(path, "rb") as f:
+            obj = pickle.load(f)
+        while len(_CONTEXTS) >= _KEEP:
+            _CONTEXTS.pop(next(iter(_CONTEXTS)))
+        _CONTEXTS[path] = obj
+    return obj
+
+
+def _parts(dm) -> list:
+    """The DirectModels inside a DirectModel or SplitDirect."""
+    return [p for _, p in dm.parts] if hasattr(dm, "parts") else [dm]
+
+
+def _stats(dm) -> list[list[int]]:
+    return [[getattr(p.stats, k) for k in _STATS] for p in _parts(dm)]
+
+
+def direct_task(ctx: str, variant: str, store: str, t0: int, t1: int) -> list[list[int]]:
+    """Direct-light columns of texels t0 .. t1 - 1 into ``store``'s chunk; returns the rays / pairs counted."""
+    import zarr
+
+    dm = _context(ctx, variant)
+    before = _stats(dm)
+    cols = dm.columns(np.arange(t0, t1, dtype=np.int64))
+    zarr.open_array(store, mode="r+")[:, :, t0:t1] = cols
+    return [[a - b for a, b in zip(x, y)] for x, y in zip(_stats(dm), before)]
+
+
+def indirect_task(ctx: str, variant: str, folder: str, a: int, b: int, keep: bool):
+    """A[:, :, a:b] += the gather's indirect columns, in place; returns (the nodes' direct light (C, S, b - a) when
+    ``keep``, else None; seconds; node shadow rays traced)."""
+    import zarr
+
+    gi = _context(ctx, variant)
+    t, rays = gi.seconds_columns, gi.dm.stats.rays_traced
+    A = zarr.open_group(folder, mode="r+")["A"]
+    A[:, :, a:b] = A[:, :, a:b] + gi.columns(a, b).astype(np.float32)
+    E = gi.E[:, :, a:b].copy() if keep else None
+    return E, gi.seconds_columns - t, gi.dm.stats.rays_traced - rays
+
+
+def gram_task(folder: str, r0: int, r1: int, out: str) -> str:
+    """A_c[r0:r1]^T A_c[r0:r1] per channel (C, N, N) float64, saved to ``out``."""
+    import zarr
+
+    from objcam.solvers import gram
+
+    A = zarr.open_group(folder, mode="r")["A"]
+    blk = np.asarray(A[:, r0:r1, :])
+    np.save(out, np.stack([gram(blk[c]) for c in range(blk.shape[0])]))
+    return out
+
+
+class DaskEngine:
+    """The transport's shards on a ``distributed.Client``'s cluster (see the module docstring).
+
+    retries: extra attempts of a task that raised (a task lost with its worker is rescheduled by Dask itself);
+    on_result: called after each shard's result arrives (progress hooks; tests kill a worker from it)."""
+
+    name = "dask"
+
+    def __init__(self, client, retries: int = 2, on_result=None):
+        self.client = client
+        self.retries = int(retries)
+        self.on_result = on_result
+        self.tasks = 0
+        self.seconds_driver_wait = 0.0
+
+    # --------------------------------------------------------------------------------------------- helpers
+    def _variant(self) -> str:
+        import mitsuba as mi
+
+        return mi.variant()
+
+    def _submit(self, fn, *args, tag: str):
+        self.tasks += 1
+        return self.client.submit(fn, *args, key=f"objcam-{tag}-{uuid.uuid4().hex[:12]}", pure=False,
+                                  retries=self.retries)
+
+    def _results(self, futures) -> Iterator:
+        """Each future's result, in submission order."""
+        for fut in futures:
+            t0 = time.perf_counter()
+            res = fut.result()
+            self.seconds_driver_wait += time.perf_counter() - t0
+            if self.on_result is not None:
+                self.on_result(self)
+            yield res
+
+    @staticmethod
+    def _shard_dir(folder: Path) -> Path:
+        return Path(folder).parent / "_shards" / Path(folder).name
+
+    # ------------------------------------------------------------------------------------------- the engine
+    def direct_columns(self, dm, blocks: list[np.ndarray], folder: Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        import zarr
+
+        from objcam.transport.storage import _compressor
+
+        shard = self._shard_dir(folder)
+        try:
+            ctx = _write_context(shard / "direct.pkl", dm)
+            first = [int(b[0]) for b in blocks]
+            last = [int(b[-1]) + 1 for b in blocks]
+            if any(b.size != e - s for b, s, e in zip(blocks, first, last)):
+                raise ValueError("direct_columns: blocks must be contiguous texel ranges")
+            c, m = _parts(dm)[0].c, dm.m
+            size = max(e - s for s, e in zip(first, last))
+            store = str(shard / "direct")
+            zarr.create_array(store, shape=(c, m, max(last)), chunks=(c, m, size), dtype="float32",
+                              compressors=_compressor(), fill_value=0.0, zarr_format=3)
+            variant = self._variant()
+            futs = [self._submit(direct_task, ctx, variant, store, s, e, tag="direct") for s, e in zip(first, last)]
+            arr = zarr.open_array(store, mode="r")
+            parts = _parts(dm)
+            for tex, s, e, delta in zip(blocks, first, last, self._results(futs)):
+                for p, d in zip(parts, delta):
+                    for k, v in zip(_STATS, d):
+                        setattr(p.stats, k, getattr(p.stats, k) + int(v))
+                yield tex, np.asarray(arr[:, :, s:e])
+        finally:
+            shutil.rmtree(shard, ignore_errors=True)
+            _prune(shard)
+
+    def add_indirect(self, folder: Path, gi) -> None:
+        import zarr
+
+        shard = self._shard_dir(folder)
+        try:
+            A = zarr.open_group(str(folder), mode="r")["A"]
+            n, step = A.shape[2], A.chunks[2]
+            ctx = _write_context(shard / "gather.pkl", gi)
+            if gi.keep_parts and gi.E is None:  # the nodes' direct light, filled from the shards' results
+                gi.E = np.zeros((gi.channels, gi.dm.m, gi.texel_index.size), np.float32)
+            variant = self._variant()
+            spans = [(a, min(n, a + step)) for a in range(0, n, step)]
+            futs = [self._submit(indirect_task, ctx, variant, str(folder), a, b, bool(gi.keep_parts), tag="gather")
+                    for a, b in spans]
+            for (a, b), (E, secs, rays) in zip(spans, self._results(futs)):
+                if E is not None:
+                    gi.E[:, :, a:b] = E
+                gi.seconds_columns += secs
+                gi.dm.stats.rays_traced += int(rays)
+        finally:
+            shutil.rmtree(shard, ignore_errors=True)
+            _prune(shard)
+
+    def write_gram(self, folder: Path) -> float:
+        import io
+
+        import zarr
+
+        from objcam.image_io import atomic_write_bytes
+        from objcam.transport.storage import GRAM
+
+        t0 = time.perf_counter()
+        shard = self._shard_dir(folder)
+        shard.mkdir(parents=True, exist_ok=True)
+        try:
+            m = zarr.open_group(str(folder), mode="r")["A"].shape[1]
+            workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+            step = max(1, -(-m // (2 * workers)))  # two row blocks per worker
+            futs = [self._submit(gram_task, str(folder), r0, min(m, r0 + step), str(shard / f"gram{i}.npy"),
+                                 tag="gram") for i, r0 in enumerate(range(0, m, step))]
+            G = None
+            for path in self._results(futs):  # summed in row order, whoever finished first
+                part = np.load(path)
+                G = part if G is None else G + part
+            G = 0.5 * (G + np.transpose(G, (0, 2, 1)))  # exactly symmetric, as objcam.solvers.gram
+            buf = io.BytesIO()
+            np.save(buf, G)
+            atomic_write_bytes(Path(folder) / GRAM, buf.getvalue())
+        finally:
+            shutil.rmtree(shard, ignore_errors=True)
+            _prune(shard)
+        return time.perf_counter() - t0
+
+    def metrics(self) -> dict:
+        info = self.client.scheduler_info()
+        return {"engine": self.name, "engine_workers": len(info.get("workers", {})), "engine_tasks": self.tasks,
+                "engine_driver_wait_seconds": round(self.seconds_driver_wait, 3)}
+
+
+def _prune(shard: Path) -> None:
+    """Remove ``_shards/`` once empty (it must not stay among the stage's artifacts)."""
+    for p in (shard.parent,):
+        try:
+            p.rmdir()
+        except OSError:
+            pass
