@@ -58,7 +58,6 @@ def named_config(name: str) -> dict:
     """``objcam.clusters.NAME`` from Dask's configuration, checked."""
     import dask.config
 
-    dask.config.refresh()  # files written since import (and $DASK_CONFIG) count
     clusters = dask.config.get("objcam.clusters", default={}) or {}
     cfg = clusters.get(name)
     where = "~/.config/dask/objcam.yaml (or $DASK_CONFIG)"

@@ -146,6 +146,9 @@ class DaskEngine:
                 self.on_result(self)
             yield res
 
+    def _workers(self) -> int:
+        return max(1, len(self.client.scheduler_info().get("workers", {})))
+
     @staticmethod
     def _shard_dir(folder: Path) -> Path:
         return Path(folder).parent / "_shards" / Path(folder).name
@@ -161,21 +164,25 @@ class DaskEngine:
             ctx = _write_context(shard / "direct.pkl", dm)
             first = [int(b[0]) for b in blocks]
             last = [int(b[-1]) + 1 for b in blocks]
-            if any(b.size != e - s for b, s, e in zip(blocks, first, last)):
-                raise ValueError("direct_columns: blocks must be contiguous texel ranges")
+            if any(b.size != e - s for b, s, e in zip(blocks, first, last)) or \
+                    any(s != i * (last[0] - first[0]) for i, s in enumerate(first)):
+                raise ValueError("direct_columns: blocks must be consecutive equal texel ranges from 0")
+            # shards of q texels (q divides the block, so every shard is one chunk): a few per worker
+            q = _shard_size(last[0] - first[0], len(blocks), self._workers())
+            spans = [[(a, min(a + q, e)) for a in range(s, e, q)] for s, e in zip(first, last)]
             c, m = _parts(dm)[0].c, dm.m
-            size = max(e - s for s, e in zip(first, last))
             store = str(shard / "direct")
-            zarr.create_array(store, shape=(c, m, max(last)), chunks=(c, m, size), dtype="float32",
+            zarr.create_array(store, shape=(c, m, max(last)), chunks=(c, m, q), dtype="float32",
                               compressors=_compressor(), fill_value=0.0, zarr_format=3)
             variant = self._variant()
-            futs = [self._submit(direct_task, ctx, variant, store, s, e, tag="direct") for s, e in zip(first, last)]
+            futs = [[self._submit(direct_task, ctx, variant, store, a, b, tag="direct") for a, b in sp] for sp in spans]
             arr = zarr.open_array(store, mode="r")
             parts = _parts(dm)
-            for tex, s, e, delta in zip(blocks, first, last, self._results(futs)):
-                for p, d in zip(parts, delta):
-                    for k, v in zip(_STATS, d):
-                        setattr(p.stats, k, getattr(p.stats, k) + int(v))
+            for tex, s, e, fs in zip(blocks, first, last, futs):
+                for delta in self._results(fs):
+                    for p, d in zip(parts, delta):
+                        for k, v in zip(_STATS, d):
+                            setattr(p.stats, k, getattr(p.stats, k) + int(v))
                 yield tex, np.asarray(arr[:, :, s:e])
         finally:
             shutil.rmtree(shard, ignore_errors=True)
@@ -217,8 +224,7 @@ class DaskEngine:
         shard.mkdir(parents=True, exist_ok=True)
         try:
             m = zarr.open_group(str(folder), mode="r")["A"].shape[1]
-            workers = max(1, len(self.client.scheduler_info().get("workers", {})))
-            step = max(1, -(-m // (2 * workers)))  # two row blocks per worker
+            step = max(1, -(-m // (2 * self._workers())))  # two row blocks per worker
             futs = [self._submit(gram_task, str(folder), r0, min(m, r0 + step), str(shard / f"gram{i}.npy"),
                                  tag="gram") for i, r0 in enumerate(range(0, m, step))]
             G = None
@@ -238,6 +244,18 @@ class DaskEngine:
         info = self.client.scheduler_info()
         return {"engine": self.name, "engine_workers": len(info.get("workers", {})), "engine_tasks": self.tasks,
                 "engine_driver_wait_seconds": round(self.seconds_driver_wait, 3)}
+
+
+def _shard_size(block: int, n_blocks: int, workers: int, per_worker: int = 4) -> int:
+    """The largest divisor of ``block`` that makes at least ``per_worker`` shards per worker over ``n_blocks``
+    blocks (a small scene's one block still spreads over the cluster; a large one keeps its blocks whole)."""
+    want = -(-per_worker * workers // max(1, n_blocks))  # shards per block
+    if want <= 1:
+        return block
+    for q in range(max(1, block // want), 0, -1):
+        if block % q == 0:
+            return q
+    return 1
 
 
 def _prune(shard: Path) -> None:
