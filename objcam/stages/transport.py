@@ -128,6 +128,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
                          targets=[t.name for t in targets], target_noise=noise)
         m["gram_seconds"] = round(current().write_gram(inputs.out / sub), 3)  # objcam.transport.engine
+        m.update(current().metrics())
         per_cam.append(m)
         for t in targets:
             mapping[t.name] = sub

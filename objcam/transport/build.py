@@ -208,7 +208,6 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
               "directions": dirs, "solid_angle": omega, "albedo": parts.albedo(),
               "unknown_albedo": parts.unknown_albedo(), "coverage": parts.coverage(),
               "object_fraction": parts.object_fraction()}
-    metrics.update(engine.metrics())
     metrics["texels_kept"] = int(texel_index.size)
     metrics["model"] = chosen
     metrics["seconds"] = round(time.perf_counter() - t0, 3)

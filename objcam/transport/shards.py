@@ -9,8 +9,8 @@ only the path), computes its shards and writes them as zarr chunks into that fol
   (one zarr chunk per block), read back in order by the driver into A;
 - indirect light (model auto, gather): one task per chunk of A's columns, adding its columns in place (chunks
   are disjoint, so tasks never write the same chunk);
-- the Gram matrix: one task per block of A's rows, each writing A_r^T A_r (float64) beside the shards; the
-  driver sums them.
+- the Gram matrix: one task per pair of column blocks (I, J), each writing A_I^T A_J (float64) beside the
+  shards; the driver assembles the blocks.
 
 Every task is a pure function of its inputs: a task lost with its worker is run again elsewhere (Dask reschedules
 it; ``retries`` more on errors) and writes the same bytes. Workers must see the work folder and the scene
@@ -46,6 +46,7 @@ def _context(path: str, variant: str):
     on the worker's own threads."""
     obj = _CONTEXTS.get(path)
     if obj is None:
+        c0 = time.process_time()
         import drjit as dr
 
         from objcam.scene import use_mitsuba
@@ -62,7 +63,18 @@ def _context(path: str, variant: str):
         while len(_CONTEXTS) >= _KEEP:
             _CONTEXTS.pop(next(iter(_CONTEXTS)))
         _CONTEXTS[path] = obj
+        _LOAD_CPU[0] += time.process_time() - c0
     return obj
+
+
+_LOAD_CPU = [0.0]  # this worker's CPU seconds spent loading contexts, reported by the next task (then reset)
+
+
+def _cpu(c0: float) -> dict:
+    """A task's CPU accounting: its process CPU since ``c0`` (a worker runs one task at a time, so that is the
+    task's, Dr.Jit's threads included) and the part spent loading its context."""
+    load, _LOAD_CPU[0] = _LOAD_CPU[0], 0.0
+    return {"cpu": time.process_time() - c0, "load_cpu": load}
 
 
 def _parts(dm) -> list:
@@ -74,40 +86,44 @@ def _stats(dm) -> list[list[int]]:
     return [[getattr(p.stats, k) for k in _STATS] for p in _parts(dm)]
 
 
-def direct_task(ctx: str, variant: str, store: str, t0: int, t1: int) -> list[list[int]]:
-    """Direct-light columns of texels t0 .. t1 - 1 into ``store``'s chunk; returns the rays / pairs counted."""
+def direct_task(ctx: str, variant: str, store: str, t0: int, t1: int) -> dict:
+    """Direct-light columns of texels t0 .. t1 - 1 into ``store``'s chunk; returns the rays / pairs counted
+    (``stats``, per part) and the CPU accounting."""
     import zarr
 
+    c0 = time.process_time()
     dm = _context(ctx, variant)
     before = _stats(dm)
     cols = dm.columns(np.arange(t0, t1, dtype=np.int64))
     zarr.open_array(store, mode="r+")[:, :, t0:t1] = cols
-    return [[a - b for a, b in zip(x, y)] for x, y in zip(_stats(dm), before)]
+    return {"stats": [[a - b for a, b in zip(x, y)] for x, y in zip(_stats(dm), before)]} | _cpu(c0)
 
 
-def indirect_task(ctx: str, variant: str, folder: str, a: int, b: int, keep: bool):
-    """A[:, :, a:b] += the gather's indirect columns, in place; returns (the nodes' direct light (C, S, b - a) when
-    ``keep``, else None; seconds; node shadow rays traced)."""
+def indirect_task(ctx: str, variant: str, folder: str, a: int, b: int, keep: bool) -> dict:
+    """A[:, :, a:b] += the gather's indirect columns, in place; returns the nodes' direct light ``E``
+    (C, S, b - a) when ``keep`` (else None), ``seconds``, node shadow ``rays`` traced, and the CPU accounting."""
     import zarr
 
+    c0 = time.process_time()
     gi = _context(ctx, variant)
     t, rays = gi.seconds_columns, gi.dm.stats.rays_traced
     A = zarr.open_group(folder, mode="r+")["A"]
     A[:, :, a:b] = A[:, :, a:b] + gi.columns(a, b).astype(np.float32)
     E = gi.E[:, :, a:b].copy() if keep else None
-    return E, gi.seconds_columns - t, gi.dm.stats.rays_traced - rays
+    return {"E": E, "seconds": gi.seconds_columns - t, "rays": gi.dm.stats.rays_traced - rays} | _cpu(c0)
 
 
-def gram_task(folder: str, r0: int, r1: int, out: str) -> str:
-    """A_c[r0:r1]^T A_c[r0:r1] per channel (C, N, N) float64, saved to ``out``."""
+def gram_task(folder: str, i: tuple[int, int], j: tuple[int, int], out: str) -> dict:
+    """The Gram block A_c[:, i0:i1]^T A_c[:, j0:j1] per channel (C, i1 - i0, j1 - j0) float64, saved to ``out``
+    (column blocks: a task reads two column ranges of A, never all of it)."""
     import zarr
 
-    from objcam.solvers import gram
-
+    c0 = time.process_time()
     A = zarr.open_group(folder, mode="r")["A"]
-    blk = np.asarray(A[:, r0:r1, :])
-    np.save(out, np.stack([gram(blk[c]) for c in range(blk.shape[0])]))
-    return out
+    ai = np.asarray(A[:, :, i[0]:i[1]], dtype=np.float64)
+    aj = ai if j == i else np.asarray(A[:, :, j[0]:j[1]], dtype=np.float64)
+    np.save(out, np.stack([ai[c].T @ aj[c] for c in range(ai.shape[0])]))
+    return {"path": out} | _cpu(c0)
 
 
 class DaskEngine:
@@ -124,6 +140,7 @@ class DaskEngine:
         self.on_result = on_result
         self.tasks = 0
         self.seconds_driver_wait = 0.0
+        self.cpu: dict[str, float] = {}  # the shards' CPU seconds per phase, and of loading contexts
 
     # --------------------------------------------------------------------------------------------- helpers
     def _variant(self) -> str:
@@ -136,12 +153,14 @@ class DaskEngine:
         return self.client.submit(fn, *args, key=f"objcam-{tag}-{uuid.uuid4().hex[:12]}", pure=False,
                                   retries=self.retries)
 
-    def _results(self, futures) -> Iterator:
-        """Each future's result, in submission order."""
+    def _results(self, futures, phase: str) -> Iterator[dict]:
+        """Each future's result, in submission order; its CPU accounting summed per phase."""
         for fut in futures:
             t0 = time.perf_counter()
             res = fut.result()
             self.seconds_driver_wait += time.perf_counter() - t0
+            self.cpu[phase] = self.cpu.get(phase, 0.0) + res["cpu"]
+            self.cpu["context_load"] = self.cpu.get("context_load", 0.0) + res["load_cpu"]
             if self.on_result is not None:
                 self.on_result(self)
             yield res
@@ -179,8 +198,8 @@ class DaskEngine:
             arr = zarr.open_array(store, mode="r")
             parts = _parts(dm)
             for tex, s, e, fs in zip(blocks, first, last, futs):
-                for delta in self._results(fs):
-                    for p, d in zip(parts, delta):
+                for res in self._results(fs, "direct"):
+                    for p, d in zip(parts, res["stats"]):
                         for k, v in zip(_STATS, d):
                             setattr(p.stats, k, getattr(p.stats, k) + int(v))
                 yield tex, np.asarray(arr[:, :, s:e])
@@ -202,11 +221,11 @@ class DaskEngine:
             spans = [(a, min(n, a + step)) for a in range(0, n, step)]
             futs = [self._submit(indirect_task, ctx, variant, str(folder), a, b, bool(gi.keep_parts), tag="gather")
                     for a, b in spans]
-            for (a, b), (E, secs, rays) in zip(spans, self._results(futs)):
-                if E is not None:
-                    gi.E[:, :, a:b] = E
-                gi.seconds_columns += secs
-                gi.dm.stats.rays_traced += int(rays)
+            for (a, b), res in zip(spans, self._results(futs, "gather")):
+                if res["E"] is not None:
+                    gi.E[:, :, a:b] = res["E"]
+                gi.seconds_columns += res["seconds"]
+                gi.dm.stats.rays_traced += int(res["rays"])
         finally:
             shutil.rmtree(shard, ignore_errors=True)
             _prune(shard)
@@ -223,14 +242,21 @@ class DaskEngine:
         shard = self._shard_dir(folder)
         shard.mkdir(parents=True, exist_ok=True)
         try:
-            m = zarr.open_group(str(folder), mode="r")["A"].shape[1]
-            step = max(1, -(-m // (2 * self._workers())))  # two row blocks per worker
-            futs = [self._submit(gram_task, str(folder), r0, min(m, r0 + step), str(shard / f"gram{i}.npy"),
-                                 tag="gram") for i, r0 in enumerate(range(0, m, step))]
-            G = None
-            for path in self._results(futs):  # summed in row order, whoever finished first
-                part = np.load(path)
-                G = part if G is None else G + part
+            A = zarr.open_group(str(folder), mode="r")["A"]
+            c, n, chunk = A.shape[0], A.shape[2], A.chunks[2]
+            # p column blocks (whole chunks), p (p + 1) / 2 block products: about two per worker
+            n_chunks = -(-n // chunk)
+            p = max(1, min(n_chunks, int(np.sqrt(4 * self._workers()))))
+            per = chunk * -(-n_chunks // p)  # columns per block, whole chunks
+            cols = [(a, min(n, a + per)) for a in range(0, n, per)]
+            pairs = [(i, j) for a, i in enumerate(cols) for j in cols[a:]]
+            futs = [self._submit(gram_task, str(folder), i, j, str(shard / f"gram{k}.npy"), tag="gram")
+                    for k, (i, j) in enumerate(pairs)]
+            G = np.zeros((c, n, n))
+            for (i, j), res in zip(pairs, self._results(futs, "gram")):
+                blk = np.load(res["path"])
+                G[:, i[0]:i[1], j[0]:j[1]] = blk
+                G[:, j[0]:j[1], i[0]:i[1]] = np.transpose(blk, (0, 2, 1))
             G = 0.5 * (G + np.transpose(G, (0, 2, 1)))  # exactly symmetric, as objcam.solvers.gram
             buf = io.BytesIO()
             np.save(buf, G)
@@ -241,9 +267,12 @@ class DaskEngine:
         return time.perf_counter() - t0
 
     def metrics(self) -> dict:
-        info = self.client.scheduler_info()
-        return {"engine": self.name, "engine_workers": len(info.get("workers", {})), "engine_tasks": self.tasks,
-                "engine_driver_wait_seconds": round(self.seconds_driver_wait, 3)}
+        """The engine's counts since the last call (one camera's build; the engine serves a whole batch)."""
+        out = {"engine": self.name, "engine_workers": self._workers(), "engine_tasks": self.tasks,
+               "engine_driver_wait_seconds": round(self.seconds_driver_wait, 3)}
+        out |= {f"engine_cpu_{k}_seconds": round(v, 3) for k, v in self.cpu.items()}
+        self.tasks, self.seconds_driver_wait, self.cpu = 0, 0.0, {}
+        return out
 
 
 def _shard_size(block: int, n_blocks: int, workers: int, per_worker: int = 4) -> int:
