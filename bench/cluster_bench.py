@@ -116,27 +116,30 @@ def run(workers: int, env_height: int, project: list[int]) -> dict:
     b = np.asarray(zarr.open_group(str(OUT / "dask" / "cam0"), mode="r")["A"][...])
     ga, gb = np.load(OUT / "inprocess" / "cam0" / "gram.npy"), np.load(OUT / "dask" / "cam0" / "gram.npy")
     phases = _phase_times(stream)
-    driver = wall_d - engine.seconds_driver_wait  # what the driver does itself (samples, auto's renders, ...)
+    driver = wall_d - m_d["engine_driver_wait_seconds"]  # what the driver does itself (samples, auto's renders, ...)
     proj = {w: driver + sum(_lpt(t, w) for t in phases.values()) for w in project}
     return {"workers": workers, "env_height": env_height, "shape": f"{m_in['pixels_kept']:,} x {m_in['texels_kept']:,}",
             "model": m_in["model"], "wall_in": wall_in, "cpu_in": cpu_in, "wall_d": wall_d, "cpu_d": cpu_d,
             "start_cpu": start_cpu, "start_wall": start_wall, "driver": driver,
             "shards": {k: (len(v), sum(v)) for k, v in phases.items()}, "proj": proj,
+            "shard_cpu": {k[len("engine_cpu_"):-len("_seconds")]: v for k, v in m_d.items()
+                          if k.startswith("engine_cpu_")},
             "max_rel_A": float(np.abs(a - b).max() / np.abs(a).max()) if a.shape == b.shape else float("nan"),
             "max_rel_gram": float(np.abs(ga - gb).max() / np.abs(ga).max()), "load": (load0, load1)}
 
 
 def table(rows: list[dict]) -> str:
     lines = ["| A (px x texels) | model | in-process wall / CPU (s) | cluster | cluster start CPU (s) | "
-             "transport on the cluster wall / CPU (s) | CPU overhead | shards (count, compute s) | driver's own (s) | "
-             "projected wall | max rel. diff A / Gram | load |",
-             "|---|---|---:|---|---:|---:|---:|---|---:|---|---|---|"]
+             "transport on the cluster wall / CPU (s) | CPU overhead | shards (count, compute s) | shard CPU (s) | "
+             "driver's own (s) | projected wall | max rel. diff A / Gram | load |",
+             "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---|---|"]
     for r in rows:
         sh = ", ".join(f"{k} {n} / {s:.1f}" for k, (n, s) in r["shards"].items())
         pj = ", ".join(f"{w} workers {t:.1f} s ({r['wall_in'] / t:.1f}x)" for w, t in r["proj"].items())
         lines.append(f"| {r['shape']} | {r['model']} | {r['wall_in']:.1f} / {r['cpu_in']:.1f} | local:{r['workers']} | "
                      f"{r['start_cpu']:.1f} | {r['wall_d']:.1f} / {r['cpu_d']:.1f} | "
-                     f"{100 * (r['cpu_d'] / r['cpu_in'] - 1):+.0f}% | {sh} | {r['driver']:.1f} | {pj} | "
+                     f"{100 * (r['cpu_d'] / r['cpu_in'] - 1):+.0f}% | {sh} | "
+                     f"{', '.join(f'{k} {v:.1f}' for k, v in r['shard_cpu'].items())} | {r['driver']:.1f} | {pj} | "
                      f"{r['max_rel_A']:.1e} / {r['max_rel_gram']:.1e} | {r['load'][0]:.1f}-{r['load'][1]:.1f} |")
     return "\n".join(lines)
 
