@@ -2,8 +2,8 @@
 
 SPEC is one of
 
-- ``local`` or ``local:N``: a LocalCluster of N single-thread worker processes on this machine (default: one
-  per core);
+- ``local`` or ``local:N``: a LocalCluster of N worker processes, one task at a time each, on this machine
+  (default: one per core);
 - ``tcp://HOST:PORT`` (or ``tls://``): an existing scheduler (``dask scheduler`` and ``dask worker`` started
   elsewhere, on machines that share the work folder);
 - ``NAME``: a cluster defined in Dask's configuration (``~/.config/dask/*.yaml``, or the folder in
@@ -92,7 +92,7 @@ def connect(spec: str, timeout: float = 60.0):
     cluster = None
     try:
         if cs.kind == "local":
-            # single-thread workers; each Dr.Jit uses its worker's one thread (objcam.transport.shards)
+            # one task at a time per worker; its Dr.Jit kernels use Dr.Jit's own thread pool (objcam.transport.shards)
             cluster = LocalCluster(n_workers=cs.workers, threads_per_worker=1, processes=True,
                                    dashboard_address=":0", memory_limit=0 if cs.workers <= cores() else "auto")
             client = Client(cluster)

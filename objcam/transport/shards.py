@@ -42,22 +42,15 @@ def _write_context(path: Path, obj) -> str:
 
 
 def _context(path: str, variant: str):
-    """The model pickled at ``path``, loaded once per worker with Mitsuba's ``variant`` (the driver's) and Dr.Jit
-    on the worker's own threads."""
+    """The model pickled at ``path``, loaded once per worker with Mitsuba's ``variant`` (the driver's)."""
     obj = _CONTEXTS.get(path)
     if obj is None:
         c0 = time.process_time()
-        import drjit as dr
-
         from objcam.scene import use_mitsuba
 
+        # Dr.Jit keeps its own thread pool (every core): dr.set_thread_count(1) on a worker crashed LLVM kernels
+        # (segfaults at 64 x 128 texels, bench/results.md issue 25), so a worker is one task at a time, not one core
         use_mitsuba(variant)
-        try:
-            from distributed import get_worker
-
-            dr.set_thread_count(max(1, int(get_worker().state.nthreads)))  # a single-thread worker uses one core
-        except (ImportError, ValueError):
-            pass  # not on a worker (tests calling a task directly)
         with open(path, "rb") as f:
             obj = pickle.load(f)
         while len(_CONTEXTS) >= _KEEP:
