@@ -35,7 +35,6 @@ import numpy as np
 
 from objcam.envmap import EnvGrid
 from objcam.scene import use_mitsuba
-from objcam.threads import parallel_map
 from objcam.transport.geometry import PixelSamples, SceneGeometry
 from objcam.transport.pixels import sobol4
 
@@ -296,16 +295,14 @@ class DirectModel:
         if not self.cull:  # brute force: trace every pair, plain estimator
             return zero, analytic, above
         rows = self.tab.rows[texels]
-        self._float32()
-
-        def one_row(r):
+        # one row after another: threads here (numpy releases the GIL) made concurrent OpenBLAS products
+        # (nbar @ d) that segfaulted once freed memory was returned to the OS (MALLOC_TRIM_THRESHOLD_, as Dask
+        # workers set it); the row products are small
+        for r in np.unique(rows):
             sel = np.nonzero(rows == r)[0]
             if sel[-1] - sel[0] + 1 == sel.size:  # contiguous: slice, no fancy-index copies
                 sel = slice(int(sel[0]), int(sel[-1]) + 1)
             zero[:, sel], analytic[:, sel], above[:, sel] = self._classify_row(int(r), texels[sel])
-
-        # rows write disjoint columns; numpy releases the GIL on these (M, W) arrays: one row per core at a time
-        parallel_map(one_row, np.unique(rows))
         return zero, analytic, above
 
     def _float32(self):

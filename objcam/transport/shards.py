@@ -19,6 +19,7 @@ artifact at the same paths as the driver (a shared filesystem) and import the sa
 
 from __future__ import annotations
 
+import os
 import pickle
 import shutil
 import time
@@ -134,6 +135,7 @@ class DaskEngine:
         self.tasks = 0
         self.seconds_driver_wait = 0.0
         self.cpu: dict[str, float] = {}  # the shards' CPU seconds per phase, and of loading contexts
+        self.context_bytes = 0  # the largest pickled model a worker loads (its memory, roughly)
 
     # --------------------------------------------------------------------------------------------- helpers
     def _variant(self) -> str:
@@ -174,6 +176,7 @@ class DaskEngine:
         shard = self._shard_dir(folder)
         try:
             ctx = _write_context(shard / "direct.pkl", dm)
+            self.context_bytes = max(self.context_bytes, os.path.getsize(ctx))
             first = [int(b[0]) for b in blocks]
             last = [int(b[-1]) + 1 for b in blocks]
             if any(b.size != e - s for b, s, e in zip(blocks, first, last)) or \
@@ -208,6 +211,7 @@ class DaskEngine:
             A = zarr.open_group(str(folder), mode="r")["A"]
             n, step = A.shape[2], A.chunks[2]
             ctx = _write_context(shard / "gather.pkl", gi)
+            self.context_bytes = max(self.context_bytes, os.path.getsize(ctx))
             if gi.keep_parts and gi.E is None:  # the nodes' direct light, filled from the shards' results
                 gi.E = np.zeros((gi.channels, gi.dm.m, gi.texel_index.size), np.float32)
             variant = self._variant()
@@ -262,9 +266,10 @@ class DaskEngine:
     def metrics(self) -> dict:
         """The engine's counts since the last call (one camera's build; the engine serves a whole batch)."""
         out = {"engine": self.name, "engine_workers": self._workers(), "engine_tasks": self.tasks,
-               "engine_driver_wait_seconds": round(self.seconds_driver_wait, 3)}
+               "engine_driver_wait_seconds": round(self.seconds_driver_wait, 3),
+               "engine_context_mb": round(self.context_bytes / 2**20, 1)}
         out |= {f"engine_cpu_{k}_seconds": round(v, 3) for k, v in self.cpu.items()}
-        self.tasks, self.seconds_driver_wait, self.cpu = 0, 0.0, {}
+        self.tasks, self.seconds_driver_wait, self.cpu, self.context_bytes = 0, 0.0, {}, 0
         return out
 
 
