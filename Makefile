@@ -52,7 +52,7 @@ test: $(STAMP)
 #   gi        the default A against path-traced columns with interreflections, from a scene objcam did not write
 #             (issue 28; ~25 min, ARGS=--quick ~1 min)
 #   cluster   the transport on a LocalCluster against in-process: CPU overhead, A identical, a projection to 8
-#             workers from per-shard timings, at 32 x 64 and 64 x 128 texels (issue 25; ~10 min)
+#             workers from per-shard timings, measured at 32 x 64 texels and extrapolated to 64 x 128 (issue 25; ~5 min)
 #   variant   A from Mitsuba's cuda_ad_rgb against llvm_ad_rgb within the Monte Carlo tolerance (issue 25; needs a
 #             CUDA device, so not in the default list)
 BENCH ?= core analysis joint probe geometry e2e hard fuzz gi cluster
@@ -76,7 +76,7 @@ bench-fuzz: $(STAMP)
 bench-gi: $(STAMP)
 	$(BIN)/python -m bench.gi_reference --write $(ARGS)
 bench-cluster: $(STAMP)
-	$(BIN)/python -m bench.cluster_bench --env-height 32 64 --project 2 8 --write $(ARGS)
+	$(BIN)/python -m bench.cluster_bench --env-height 32 --extrapolate 64 --project 2 8 --write $(ARGS)
 bench-variant: $(STAMP)
 	$(BIN)/python -m bench.variant_bench --write $(ARGS)
 

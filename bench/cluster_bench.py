@@ -1,7 +1,7 @@
 """The transport on a Dask cluster against in-process (issue 25): CPU overhead of the distributed path on the demo
 capture, and a projection to more workers from the per-shard timings measured here.
 
-    python -m bench.cluster_bench [--workers 2] [--env-height 32] [--project 8] [--write]
+    python -m bench.cluster_bench [--workers 2] [--env-height 32] [--project 8] [--extrapolate 64] [--write]
 
 Builds the demo capture's transport (the default settings, ``transport.env_height`` as given) once in this
 process and once on a LocalCluster of ``--workers`` single-thread workers, and reports:
@@ -91,7 +91,8 @@ def _phase_times(stream: list[dict]) -> dict[str, list[float]]:
     return out
 
 
-def run(workers: int, env_height: int, project: list[int]) -> dict:
+def measure(workers: int, env_height: int) -> dict:
+    """Build the demo's transport in-process and on a LocalCluster of ``workers``; the raw numbers."""
     import zarr
     from distributed import get_task_stream
 
@@ -103,29 +104,45 @@ def run(workers: int, env_height: int, project: list[int]) -> dict:
     cap = _capture()
     load0 = os.getloadavg()[0]
     m_in, wall_in, cpu_in = _build(cap, OUT / "inprocess", env_height)
-    c0, t0 = _tree_cpu(), time.perf_counter()
+    c0 = _tree_cpu()
     with connect(f"local:{workers}") as client:
         client.wait_for_workers(workers)
-        start_cpu, start_wall = _tree_cpu() - c0, time.perf_counter() - t0
-        engine = DaskEngine(client)
-        with using(engine), get_task_stream(client) as ts:
+        start_cpu = _tree_cpu() - c0
+        with using(DaskEngine(client)), get_task_stream(client) as ts:
             m_d, wall_d, cpu_d = _build(cap, OUT / "dask", env_height)
         stream = ts.data
-    load1 = os.getloadavg()[0]
     a = np.asarray(zarr.open_group(str(OUT / "inprocess" / "cam0"), mode="r")["A"][...])
     b = np.asarray(zarr.open_group(str(OUT / "dask" / "cam0"), mode="r")["A"][...])
     ga, gb = np.load(OUT / "inprocess" / "cam0" / "gram.npy"), np.load(OUT / "dask" / "cam0" / "gram.npy")
-    phases = _phase_times(stream)
-    driver = wall_d - m_d["engine_driver_wait_seconds"]  # what the driver does itself (samples, auto's renders, ...)
-    proj = {w: driver + sum(_lpt(t, w) for t in phases.values()) for w in project}
-    return {"workers": workers, "env_height": env_height, "shape": f"{m_in['pixels_kept']:,} x {m_in['texels_kept']:,}",
-            "model": m_in["model"], "wall_in": wall_in, "cpu_in": cpu_in, "wall_d": wall_d, "cpu_d": cpu_d,
-            "start_cpu": start_cpu, "start_wall": start_wall, "driver": driver,
-            "shards": {k: (len(v), sum(v)) for k, v in phases.items()}, "proj": proj,
+    return {"workers": workers, "env_height": env_height, "m_in": m_in, "wall_in": wall_in, "cpu_in": cpu_in,
+            "m_d": m_d, "wall_d": wall_d, "cpu_d": cpu_d, "start_cpu": start_cpu, "phases": _phase_times(stream),
+            "max_rel_A": float(np.abs(a - b).max() / np.abs(a).max()) if a.shape == b.shape else float("nan"),
+            "max_rel_gram": float(np.abs(ga - gb).max() / np.abs(ga).max()), "load": (load0, os.getloadavg()[0])}
+
+
+def summarize(raw: dict, project: list[int], extrapolate: int | None = None) -> dict:
+    """A table row from ``measure``'s numbers; with ``extrapolate`` (an env_height) the per-shard times scaled to
+    that many texels: columns x r (r: the texel ratio), the Gram's block products x r^2; the driver's own work
+    (samples, auto's sampled renders, the gather's rays) does not depend on the texel count."""
+    m_in, m_d, phases, wall_in = raw["m_in"], raw["m_d"], raw["phases"], raw["wall_in"]
+    shape = f"{m_in['pixels_kept']:,} x {m_in['texels_kept']:,}"
+    if extrapolate:
+        r = (extrapolate / raw["env_height"]) ** 2
+        phases = {k: [t * (r * r if k == "gram" else r) for t in v] for k, v in phases.items()}
+        lap = {k[len("cpu_seconds_"):]: v for k, v in m_in.items() if k.startswith("cpu_seconds_") and k != "cpu_seconds"}
+        scaled = sum(v * (r if k in ("direct", "gather_columns") else 1.0) for k, v in lap.items())
+        scaled += m_in["gram_seconds"] * r * r
+        wall_in = scaled * raw["wall_in"] / max(sum(lap.values()) + m_in["gram_seconds"], 1e-9)
+        shape = f"~{m_in['pixels_kept']:,} x {int(m_in['texels_kept'] * r):,} (extrapolated from {shape})"
+    driver = raw["wall_d"] - m_d["engine_driver_wait_seconds"]  # what the driver does itself
+    return {"workers": raw["workers"], "shape": shape, "model": m_in["model"], "wall_in": wall_in,
+            "cpu_in": raw["cpu_in"], "wall_d": raw["wall_d"], "cpu_d": raw["cpu_d"], "start_cpu": raw["start_cpu"],
+            "driver": driver, "shards": {k: (len(v), sum(v)) for k, v in phases.items()},
+            "proj": {w: driver + sum(_lpt(t, w) for t in phases.values()) for w in project},
             "shard_cpu": {k[len("engine_cpu_"):-len("_seconds")]: v for k, v in m_d.items()
                           if k.startswith("engine_cpu_")},
-            "max_rel_A": float(np.abs(a - b).max() / np.abs(a).max()) if a.shape == b.shape else float("nan"),
-            "max_rel_gram": float(np.abs(ga - gb).max() / np.abs(ga).max()), "load": (load0, load1)}
+            "max_rel_A": raw["max_rel_A"], "max_rel_gram": raw["max_rel_gram"], "load": raw["load"],
+            "extrapolated": bool(extrapolate)}
 
 
 def table(rows: list[dict]) -> str:
@@ -134,6 +151,12 @@ def table(rows: list[dict]) -> str:
              "driver's own (s) | projected wall | max rel. diff A / Gram | load |",
              "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---|---|"]
     for r in rows:
+        if r["extrapolated"]:
+            pj = ", ".join(f"{w} workers {t:.0f} s ({r['wall_in'] / t:.1f}x)" for w, t in r["proj"].items())
+            sh = ", ".join(f"{k} {n} / {s:.0f}" for k, (n, s) in r["shards"].items())
+            lines.append(f"| {r['shape']} | {r['model']} | ~{r['wall_in']:.0f} / - | simulated | - | - | - | {sh} | - | "
+                         f"{r['driver']:.1f} | {pj} | - | - |")
+            continue
         sh = ", ".join(f"{k} {n} / {s:.1f}" for k, (n, s) in r["shards"].items())
         pj = ", ".join(f"{w} workers {t:.1f} s ({r['wall_in'] / t:.1f}x)" for w, t in r["proj"].items())
         lines.append(f"| {r['shape']} | {r['model']} | {r['wall_in']:.1f} / {r['cpu_in']:.1f} | local:{r['workers']} | "
@@ -151,9 +174,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--env-height", type=int, nargs="+", default=[32])
     ap.add_argument("--project", type=int, nargs="+", default=[8])
+    ap.add_argument("--extrapolate", type=int, default=None, metavar="H",
+                    help="also project to env_height H from the first run's per-shard timings (columns x texels, "
+                         "Gram x texels^2)")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args(argv)
-    rows = [run(args.workers, h, args.project) for h in args.env_height]
+    raws = [measure(args.workers, h) for h in args.env_height]
+    rows = [summarize(r, args.project) for r in raws]
+    if args.extrapolate:
+        rows.append(summarize(raws[0], args.project, args.extrapolate))
     body = f"{invocation('bench.cluster_bench', argv)}\n\n{table(rows)}"
     print(body)
     if args.write:

@@ -49,8 +49,8 @@ def _context(path: str, variant: str):
         c0 = time.process_time()
         from objcam.scene import use_mitsuba
 
-        # Dr.Jit keeps its own thread pool (every core): dr.set_thread_count(1) on a worker crashed LLVM kernels
-        # (segfaults at 64 x 128 texels, bench/results.md issue 25), so a worker is one task at a time, not one core
+        # Dr.Jit keeps its own thread pool (every core): a worker is one task at a time, not one core
+        # (dr.set_thread_count(1) was tried; see bench/results.md issue 25 on the segfaults seen at 64 x 128)
         use_mitsuba(variant)
         with open(path, "rb") as f:
             obj = pickle.load(f)
