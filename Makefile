@@ -11,7 +11,7 @@ DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true --tar
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo demo-full test bench bench-blender bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz bench-gi status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench bench-blender bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz bench-gi bench-cluster bench-variant status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -51,7 +51,11 @@ test: $(STAMP)
 #   fuzz      2,000 generated hostile captures through the CLI: tracebacks, hangs, writes outside (issue 24; ~3 min)
 #   gi        the default A against path-traced columns with interreflections, from a scene objcam did not write
 #             (issue 28; ~25 min, ARGS=--quick ~1 min)
-BENCH ?= core analysis joint probe geometry e2e hard fuzz gi
+#   cluster   the transport on a LocalCluster against in-process: CPU overhead, A identical, a projection to 8
+#             workers from per-shard timings, measured at 32 x 64 texels and extrapolated to 64 x 128 (issue 25; ~5 min)
+#   variant   A from Mitsuba's cuda_ad_rgb against llvm_ad_rgb within the Monte Carlo tolerance (issue 25; needs a
+#             CUDA device, so not in the default list)
+BENCH ?= core analysis joint probe geometry e2e hard fuzz gi cluster
 bench: $(addprefix bench-,$(BENCH))
 bench-core: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
@@ -76,6 +80,10 @@ bench-gi: $(STAMP)
 # formula and against Mitsuba's render of the same export (issue 23; ~1 min)
 bench-blender: $(STAMP)
 	$(BIN)/python -m bench.blender_check --write $(ARGS)
+bench-cluster: $(STAMP)
+	$(BIN)/python -m bench.cluster_bench --env-height 32 --extrapolate 64 --project 2 8 --write $(ARGS)
+bench-variant: $(STAMP)
+	$(BIN)/python -m bench.variant_bench --write $(ARGS)
 
 # occluder design: bunny, sphere and coded mask (plus any --mesh FILE in ARGS) compared on one setup
 DESIGN_OUT ?= demo/design

@@ -15,16 +15,19 @@ from pydantic import BaseModel, ConfigDict
 from objcam.errors import InputError
 
 MITSUBA_VARIANT_PREFERENCE = ("llvm_ad_rgb", "scalar_rgb")
+# variants kept when already set (objcam.transport.variant sets cuda_ad_rgb on a GPU machine, process-wide)
+MITSUBA_VARIANTS_KEPT = MITSUBA_VARIANT_PREFERENCE + ("cuda_ad_rgb",)
 
 
 def use_mitsuba(variant: str | None = None):
-    """Import Mitsuba with the fast LLVM variant (falls back to ``scalar_rgb``) and return the module."""
+    """Import Mitsuba with the fast LLVM variant (falls back to ``scalar_rgb``) and return the module; a variant
+    already set among ``MITSUBA_VARIANTS_KEPT`` (the transport's choice, objcam.transport.variant) is kept."""
     import mitsuba as mi
 
     if variant is not None:
         mi.set_variant(variant)
         return mi
-    if mi.variant() in MITSUBA_VARIANT_PREFERENCE:
+    if mi.variant() in MITSUBA_VARIANTS_KEPT:
         return mi
     last = None
     for v in MITSUBA_VARIANT_PREFERENCE:

@@ -1,6 +1,7 @@
 """``objcam`` command line: run the pipeline on a capture, one stage of it, its status, or make a synthetic scene.
 
     objcam run CAPTURE [--until S] [--force S] [--set stage.param=value] [--work DIR]
+    objcam run C1 C2 ... [--cluster local[:N] | tcp://HOST:PORT | NAME]   a batch; transport shards on Dask
     objcam <stage> CAPTURE [...]          run one stage (and what it needs)
     objcam status CAPTURE                 done / stale / missing for every stage
     objcam synth OUT [--object bunny] [--envmap forest] ...
@@ -50,6 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run the pipeline (cached stages are skipped)")
     _pipeline_args(p)
     p.add_argument("--until", default=None, metavar="STAGE", help="stop after this stage")
+    p.add_argument("more", nargs="*", type=Path, metavar="CAPTURE",
+                   help="more captures: run each in turn, one summary table, exit status = captures failed")
+    p.add_argument("--cluster", default=None, metavar="SPEC",
+                   help="build the transport's column shards on Dask: local[:N], tcp://HOST:PORT or a cluster "
+                   "named in Dask's config (objcam.clusters.NAME; README: Slurm)")
     from objcam.pipeline.params import stage_epilog
 
     for name in graph.STAGES:
@@ -181,6 +187,10 @@ def _evaluate(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.command == "run" and (args.more or args.cluster):
+            from objcam.pipeline.batch import run_batch  # several captures, or a Dask cluster
+
+            return run_batch(args, lambda a: _run(a, until=a.until))
         if args.command == "run":
             return _run(args, until=args.until)
         if args.command == "status":

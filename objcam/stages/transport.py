@@ -46,6 +46,9 @@ class Params(BaseModel):
     max_pixels: int = Field(32768, ge=64, description="downsample=auto: most pooled pixels per camera (a 32 x 64 "
                             "envmap has ~1,100 unknowns; beyond ~16-32k pixels the solve gains little and costs M)")
     seed: int = 0
+    variant: Literal["auto", "llvm", "cuda", "scalar"] = Field("auto", description="Mitsuba variant: auto takes "
+                                                                "cuda_ad_rgb when a CUDA device is present, else "
+                                                                "llvm_ad_rgb (objcam.transport.variant)")
     use_valid: bool = Field(True, description="skip pixels invalid in every target sharing the camera")
     batch_rays: int = Field(1 << 24, ge=1024, description="shadow rays per Mitsuba launch (memory bound)")
     chunk_columns: int = Field(128, ge=1)
@@ -83,9 +86,13 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     from objcam.transport.auto import estimate_relative_noise
     from objcam.transport.build import BuildSettings, build_camera
     from objcam.transport.geometry import SceneGeometry
-    from objcam.transport.storage import write_gram, write_index
+    from objcam.transport.engine import current
+    from objcam.transport.storage import write_index
+
+    from objcam.transport.variant import activate
 
     t0 = time.perf_counter()
+    variant = activate(params.variant, inputs.capture / "capture.toml")  # before the scene is loaded into Mitsuba
     art = SceneArtifact.load(inputs.upstream["scene"])
     groups: dict[str, list] = {}
     for t in art.targets:
@@ -115,14 +122,15 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         sub = f"cam{i}"
         valids = [t.load_valid(art.folder) for t in targets]
         f = downsample_for(targets[0].camera, params)
-        settings = BuildSettings(**(params.model_dump(exclude={"max_pixels", "supersample"})
+        settings = BuildSettings(**(params.model_dump(exclude={"max_pixels", "supersample", "variant"})
                                     | {"downsample": f, "env_height": fine_height,
                                        "output_height": params.env_height}))
         noise = (_target_noise(art.folder, targets, f, estimate_relative_noise)
                  if params.model == "auto" else None)
         m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
                          targets=[t.name for t in targets], target_noise=noise)
-        m["gram_seconds"] = round(write_gram(inputs.out / sub), 3)
+        m["gram_seconds"] = round(current().write_gram(inputs.out / sub), 3)  # objcam.transport.engine
+        m.update(current().metrics())
         per_cam.append(m)
         for t in targets:
             mapping[t.name] = sub
@@ -136,6 +144,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         metrics.update(first)
     metrics.update(totals)
     metrics["cameras"] = len(groups)
+    metrics["variant"] = variant
     metrics["planned_peak_gib"] = round(planned["bytes"] / 2**30, 6)  # objcam.transport.budget's estimate
     metrics["planned_seconds"] = round(planned["seconds"], 1)
     metrics["seconds_total"] = round(time.perf_counter() - t0, 3)

@@ -13,7 +13,7 @@ from objcam.envmap import EnvGrid
 from objcam.progress import bar
 from objcam.transport.geometry import SampleParts, SceneGeometry, primary_samples
 from objcam.transport.pixels import pool_target, pooled_shape
-from objcam.transport.storage import ColumnWriter, add_to_columns
+from objcam.transport.storage import ColumnWriter
 
 
 @dataclass
@@ -49,6 +49,23 @@ class BuildSettings:
     pair_budget: int = 1 << 22  # (pixel, texel) pairs classified per block
 
 
+class _CpuLaps:
+    """CPU seconds of this process (time.process_time: every thread) between named laps."""
+
+    def __init__(self):
+        self.t = time.process_time()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.process_time()
+        self.laps[name] = self.laps.get(name, 0.0) + now - self.t
+        self.t = now
+
+    def metrics(self) -> dict:
+        return {f"cpu_seconds_{k}": round(v, 3) for k, v in self.laps.items()} | \
+            {"cpu_seconds": round(sum(self.laps.values()), 3)}
+
+
 def candidate_pixels(camera: Camera, f: int, valids: list[np.ndarray] | None) -> np.ndarray:
     """Flat pooled-pixel indices worth computing: those valid (whole block) in at least one target."""
     hp, wp = pooled_shape(camera.height, camera.width, f)
@@ -68,7 +85,11 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
     valids: the targets' (H, W) valid masks (pixels invalid in all of them are not computed).
     target_noise: (relative noise, where it came from) for model=auto; default 1% ("assumed").
     """
+    from objcam.transport.engine import current
+
+    engine = current()  # in this process, or shards on a Dask cluster (objcam.transport.shards)
     t0 = time.perf_counter()
+    cpu = _CpuLaps()  # this process's CPU per phase (Dr.Jit's threads included), beside the wall times
     f, k = int(s.downsample), int(s.samples)
     hp, wp = pooled_shape(camera.height, camera.width, f)
     grid = EnvGrid(s.env_height)
@@ -115,13 +136,15 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                                              batch_rays=s.batch_rays, refine=s.refine, image_shape=(hp, wp)))
                           for (rows, ps), kk in zip(parts.parts, rays) if rows.size], m)
         rows_per = max(1, s.pair_budget // max(1, m * grid.width))
+        blocks = [np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
+                  for r0 in range(0, grid.height, rows_per)]
+        cpu.lap("setup")
         with bar(total=n_total, desc=f"transport: direct K={k}", unit="texel") as pb:
-            for r0 in range(0, grid.height, rows_per):
-                tex = np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
-                cols = dm.columns(tex)
+            for tex, cols in engine.direct_columns(dm, blocks, folder):  # in order, wherever they were computed
                 nz = np.any(cols != 0, axis=(0, 1))
                 writer.append(tex[nz], cols[:, :, nz])
                 pb.update(tex.size)
+        cpu.lap("direct")
         st = dm.stats
         metrics.update({"rays_traced": st.rays_traced, "rays_culled": st.rays_culled, "rays_total": st.rays_total,
                         "pairs_zero": st.pairs_zero, "pairs_analytic": st.pairs_analytic,
@@ -161,6 +184,7 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                       s.correction_scale, noise, source, pins=~unknown if unknown.any() else None)
         metrics.update(rep.metrics())
         chosen = rep.choice
+        cpu.lap("auto_measure")
         if pr.column_offset:
             metrics["mitsuba_envmap_column_offset"] = pr.column_offset
         if rep.choice != "direct":
@@ -175,7 +199,9 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                 guessed = bool(parts.unknown_albedo().any()) and geo.plane is not None
                 gi = GatherIndirect(geo, parts, texel_index, s.env_height, channels, gs, batch_rays=s.batch_rays,
                                     keep_parts=guessed)
-                add_to_columns(folder, lambda a, b: gi.columns(a, b))
+                cpu.lap("gather_setup")
+                engine.add_indirect(folder, gi)
+                cpu.lap("gather_columns")
                 metrics.update(gi.metrics())
                 if guessed:
                     from objcam.transport.storage import write_bounce
@@ -189,7 +215,9 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                                           s.correction_spp, s.auto_max_depth, s.seed, s.correction_scale, detail,
                                           s.correction_detail_spp)
                 metrics["correction_detail_pixels"] = int(detail.sum())
-                corr.compute_all()
+                corr.compute_all()  # path-traced renders: in this process whatever the engine
+                from objcam.transport.storage import add_to_columns
+
                 add_to_columns(folder, lambda a, b: corr.columns(a, b, channels))
                 metrics["correction_renders"] = corr.renders
             else:
@@ -206,6 +234,8 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
     metrics["texels_kept"] = int(texel_index.size)
     metrics["model"] = chosen
     metrics["seconds"] = round(time.perf_counter() - t0, 3)
+    cpu.lap("finish")
+    metrics.update(cpu.metrics())
     attrs = {"image_shape": [hp, wp], "downsample": f, "env_height": s.env_height,
              "output_height": s.output_height or s.env_height, "channels": channels,
              "model": chosen, "model_requested": model, "samples": k if model != "path" else None,

@@ -179,6 +179,9 @@ class DirectModel:
         self._dr = None
         self._f32 = None
 
+    def __getstate__(self) -> dict:
+        return self.__dict__ | {"_dr": None}  # Dr.Jit arrays stay in their process (rebuilt on first use)
+
     # ----------------------------------------------------------------------------------------- per-pixel bounds
     def _prepare_pixels(self) -> None:
         s, tab, geo = self.s, self.tab, self.geo
@@ -292,6 +295,9 @@ class DirectModel:
         if not self.cull:  # brute force: trace every pair, plain estimator
             return zero, analytic, above
         rows = self.tab.rows[texels]
+        # one row after another: threads here (numpy releases the GIL) made concurrent OpenBLAS products
+        # (nbar @ d) that segfaulted once freed memory was returned to the OS (MALLOC_TRIM_THRESHOLD_, as Dask
+        # workers set it); the row products are small
         for r in np.unique(rows):
             sel = np.nonzero(rows == r)[0]
             if sel[-1] - sel[0] + 1 == sel.size:  # contiguous: slice, no fancy-index copies
@@ -299,11 +305,14 @@ class DirectModel:
             zero[:, sel], analytic[:, sel], above[:, sel] = self._classify_row(int(r), texels[sel])
         return zero, analytic, above
 
-    def _classify_row(self, r: int, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _float32(self):
         if self._f32 is None:
             self._f32 = (self.nbar.astype(np.float32), self.axis.astype(np.float32),
                          self.n_thr.astype(np.float32), self.occ_thr.astype(np.float32))
-        nbar, axis, n_thr, occ_thr = self._f32
+        return self._f32
+
+    def _classify_row(self, r: int, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nbar, axis, n_thr, occ_thr = self._float32()
         d = self.tab.dirs[texels].astype(np.float32).T  # (3, B)
         dn = nbar @ d
         thr = n_thr[:, r : r + 1]

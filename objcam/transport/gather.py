@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from objcam.scene import use_mitsuba
-from objcam.threads import parallel_map
+from objcam.threads import cores, parallel_map
 from objcam.transport.geometry import PixelSamples, SampleParts, SceneGeometry
 from objcam.transport.pixels import sobol4, to_unit
 
@@ -327,33 +327,38 @@ class Gather:
         cos_a = np.where(outside, np.sqrt(np.clip(1 - (self.radius / np.maximum(dist, 1e-30)) ** 2, 0, 1)), -1.0)
         cone_only = outside & on_plane
         split = outside & ~on_plane
-        # cosine-distributed directions (Malley), used by inside and split receivers
-        r = np.sqrt(u)
-        phi = 2 * np.pi * w
-        lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.clip(1 - u, 0, 1))
-        d_cos = lx[..., None] * t[:, None, :] + ly[..., None] * b[:, None, :] + lz[..., None] * nrm[:, None, :]
-        wt_cos = np.full((P, R), 1.0 / R)
-        # cone directions (uniform in solid angle about the axis)
-        ta, ba = _frames(axis)
-        ct = 1 - u * (1 - cos_a[:, None])
-        st = np.sqrt(np.clip(1 - ct * ct, 0, 1))
-        d_cone = ((st * np.cos(phi))[..., None] * ta[:, None, :] + (st * np.sin(phi))[..., None] * ba[:, None, :]
-                  + ct[..., None] * axis[:, None, :])
-        omega = 2 * np.pi * (1 - cos_a)
-        cosn = np.einsum("prx,px->pr", d_cone, nrm)
-        d = d_cos
-        wt = wt_cos
-        if cone_only.any() or split.any():
-            d = d.copy()
-            wt = wt.copy()
-            sel = cone_only
-            d[sel] = d_cone[sel]
-            wt[sel] = np.maximum(cosn[sel], 0) * (omega[sel, None] / (np.pi * R))
+        cone = cone_only | split
+        # each receiver takes cosine rays (inside the sphere), cone rays (on the plane) or both (split): each set
+        # is computed only for the receivers that use it (the formulas are per receiver, so the same bits)
+        cphi, sphi = np.cos(2 * np.pi * w), np.sin(2 * np.pi * w)
+        d = np.empty((P, R, 3))
+        wt = np.full((P, R), 1.0 / R)
+        cos_rows = np.flatnonzero(~cone)
+        if cos_rows.size:  # cosine-distributed directions (Malley)
+            uc = u[cos_rows]
+            r = np.sqrt(uc)
+            lz = np.sqrt(np.clip(1 - uc, 0, 1))
+            d[cos_rows] = ((r * cphi[cos_rows])[..., None] * t[cos_rows, None, :]
+                           + (r * sphi[cos_rows])[..., None] * b[cos_rows, None, :]
+                           + lz[..., None] * nrm[cos_rows, None, :])
+        if cone.any():  # cone directions (uniform in solid angle about the axis)
+            ci = np.flatnonzero(cone)
+            ta, ba = _frames(axis[ci])
+            ct = 1 - u[ci] * (1 - cos_a[ci, None])
+            st = np.sqrt(np.clip(1 - ct * ct, 0, 1))
+            d_cone = ((st * cphi[ci])[..., None] * ta[:, None, :] + (st * sphi[ci])[..., None] * ba[:, None, :]
+                      + ct[..., None] * axis[ci, None, :])
+            omega = 2 * np.pi * (1 - cos_a[ci])
+            cosn = np.einsum("prx,px->pr", d_cone, nrm[ci])
+            only = cone_only[ci]
+            d[ci[only]] = d_cone[only]
+            wt[ci[only]] = np.maximum(cosn[only], 0) * (omega[only, None] / (np.pi * R))
             if split.any():
                 # the first half of the rays: the cone (its own Sobol points 0 .. R/2 - 1), the second half:
                 # cosine rays counted outside the cone (points 0 .. R - R/2 - 1, another shift); each half
                 # weighted as a full estimate of its part of the hemisphere
-                idx = np.flatnonzero(split)
+                sp_ = ~only
+                idx = ci[sp_]
                 nc = R // 2
                 nh = R - nc
                 t3, t4 = _shifts(keys[idx], self.seed + 7919)
@@ -363,11 +368,22 @@ class Gather:
                 dh = ((rh * np.cos(ph))[..., None] * t[idx, None, :] + (rh * np.sin(ph))[..., None] * b[idx, None, :]
                       + np.sqrt(np.clip(1 - uh, 0, 1))[..., None] * nrm[idx, None, :])
                 in_cone = np.einsum("prx,px->pr", dh, axis[idx]) > cos_a[idx, None]
-                d[idx, :nc] = d_cone[idx, :nc]
-                wt[idx, :nc] = np.maximum(cosn[idx, :nc], 0) * (omega[idx, None] / (np.pi * nc))
+                d[idx, :nc] = d_cone[sp_, :nc]
+                wt[idx, :nc] = np.maximum(cosn[sp_, :nc], 0) * (omega[sp_, None] / (np.pi * nc))
                 d[idx, nc:] = dh
                 wt[idx, nc:] = np.where(in_cone, 0.0, 1.0 / nh)
         return d, wt
+
+    def _directions_split(self, pos, nrm, keys, n_rays, on_plane):
+        """:meth:`_directions` over the receivers split into one slice per core, on threads (numpy releases the
+        GIL on these large arrays; every receiver's rays depend on it alone, so the result is the same bits)."""
+        n = min(cores(), max(1, pos.shape[0] // 256))
+        if n <= 1:
+            return self._directions(pos, nrm, keys, n_rays, on_plane)
+        cuts = np.linspace(0, pos.shape[0], n + 1).astype(int)
+        parts = parallel_map(lambda ab: self._directions(pos[ab[0]:ab[1]], nrm[ab[0]:ab[1]], keys[ab[0]:ab[1]], n_rays,
+                                                         on_plane[ab[0]:ab[1]]), list(zip(cuts[:-1], cuts[1:])))
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
     def matrix(self, pos: np.ndarray, nrm: np.ndarray, weight: np.ndarray, rows: np.ndarray, n_rows: int,
                keys: np.ndarray, n_rays: int, on_plane: np.ndarray) -> sp.csr_matrix:
@@ -384,7 +400,7 @@ class Gather:
         per = max(1, _BATCH // max(1, n_rays))
         for a in range(0, pos.shape[0], per):
             b = min(pos.shape[0], a + per)
-            d, wt = self._directions(pos[a:b], nrm[a:b], keys[a:b], n_rays, on_plane[a:b])
+            d, wt = self._directions_split(pos[a:b], nrm[a:b], keys[a:b], n_rays, on_plane[a:b])
             keep = wt > 0
             pi, ri = np.nonzero(keep)
             o = pos[a:b][pi].astype(np.float32)
@@ -528,8 +544,9 @@ class GatherIndirect:
             if self.E is None:
                 self.E = np.zeros((self.channels, E.shape[1], self.texel_index.size), np.float32)
             self.E[:, :, a:b] = E
-        out = [self.W_pix[c] @ _propagate(E[c], self.W_node[c] if self.bounces else None, self.bounces)
-               for c in range(self.channels)]
+        # the channels' sparse products are independent (scipy releases the GIL): one per core
+        out = parallel_map(lambda c: self.W_pix[c] @ _propagate(E[c], self.W_node[c] if self.bounces else None,
+                                                                self.bounces), range(self.channels))
         self.seconds_columns += time.perf_counter() - t0
         return np.stack(out).astype(np.float32)
 

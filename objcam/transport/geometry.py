@@ -3,6 +3,7 @@ camera's sub-pixel samples land on (primary rays)."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,6 +12,9 @@ import numpy as np
 from objcam.camera import Camera
 from objcam.scene import MeshData, SceneDescription, build_mitsuba_scene, use_mitsuba
 from objcam.transport.pixels import subpixel_positions
+
+
+_UNPICKLED: dict = {}  # the last scene rebuilt by unpickling (objcam.transport.shards' workers)
 
 
 @dataclass
@@ -32,6 +36,25 @@ class SceneGeometry:
     eps: float  # shadow-ray origin offset along the normal, metres
     env_height: int = 8  # of the envmap emitter (path renders)
     upsample: int = 8  # of its box bitmap (objcam.render.mitsuba_box_bitmap)
+
+    def __getstate__(self) -> dict:
+        # pickled as what loads it (a Dask worker rebuilds the Mitsuba scene from the shared scene artifact; the
+        # shape ids are this process's pointers, so they are found again there)
+        return {"desc": self.desc, "root": self.root, "env_height": self.env_height, "upsample": self.upsample}
+
+    def __setstate__(self, state: dict) -> None:
+        import mitsuba as mi
+
+        # one scene per worker for every model pickled from it (direct blocks, then the gather's chunks)
+        root, desc = Path(state["root"]), state["desc"]
+        files = tuple((st.st_size, st.st_mtime_ns) for st in (os.stat(root / f) for f in
+                                                                 (desc.object_mesh, desc.support_mesh)))
+        # a long-lived worker may see the same path rebuilt by a later run: the files' stat is in the key
+        key = (desc.model_dump_json(), str(root), files, state["env_height"], state["upsample"], mi.variant())
+        if key not in _UNPICKLED:
+            _UNPICKLED.clear()
+            _UNPICKLED[key] = SceneGeometry.load(state["desc"], state["root"], state["env_height"], state["upsample"])
+        self.__dict__.update(_UNPICKLED[key].__dict__)
 
     @classmethod
     def load(cls, desc: SceneDescription, root: str | Path, env_height: int = 8, upsample: int = 8) -> "SceneGeometry":

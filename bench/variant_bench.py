@@ -1,0 +1,91 @@
+"""A from Mitsuba's cuda_ad_rgb against llvm_ad_rgb on the demo capture (issue 25), within the Monte Carlo
+tolerance: the two variants' A differ by their floating-point paths only (same seeds, same rays), so their
+difference must stay within the difference between two llvm builds of different seeds, which is the Monte Carlo
+noise itself.
+
+    python -m bench.variant_bench [--model direct] [--write]      # needs a CUDA device (transport.variant=cuda)
+
+Each build runs in its own process (Mitsuba's variant is process-wide). Reports per build the wall and CPU
+seconds, and the relative Frobenius and largest column differences of cuda against llvm (seed 0) and of llvm
+seed 1 against llvm seed 0. With ``--write`` the table goes to bench/results.md's ``variant`` block.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+OUT = Path("bench/out/variant")
+_BUILD = """
+import json, sys, time
+from pathlib import Path
+from objcam.pipeline.stage import StageInputs
+from objcam.stages import transport as stage
+cap, out, variant, seed, model = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5]
+out.mkdir(parents=True)
+t0, c0 = time.perf_counter(), time.process_time()
+m = stage.run(StageInputs(capture=cap, upstream={"scene": cap / "objcam" / "scene"}, out=out, quiet=True),
+              stage.Params(variant=variant, seed=seed, model=model)).metrics
+print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0, "variant": m["variant"]}))
+"""
+
+
+def _build(cap: Path, name: str, variant: str, seed: int, model: str) -> dict:
+    import shutil
+
+    out = OUT / name
+    shutil.rmtree(out, ignore_errors=True)
+    r = subprocess.run([sys.executable, "-c", _BUILD, str(cap), str(out), variant, str(seed), model],
+                       capture_output=True, text=True, env={**__import__("os").environ, "OBJCAM_QUIET": "1"})
+    if r.returncode != 0:
+        raise SystemExit(f"{name}: {r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode}")
+    return json.loads(r.stdout.strip().splitlines()[-1]) | {"out": out}
+
+
+def _diff(a: Path, b: Path) -> tuple[float, float]:
+    """(relative Frobenius difference, largest relative column difference) of A in b against A in a, on the
+    pixels and texels both kept."""
+    from objcam.transport.storage import load_group
+
+    ta, tb = load_group(a / "cam0"), load_group(b / "cam0")
+    _, ia, ib = np.intersect1d(ta.texel_index, tb.texel_index, return_indices=True)
+    _, pa, pb = np.intersect1d(ta.pixel_index, tb.pixel_index, return_indices=True)  # seeds move edge pixels
+    A, B = ta.A[:, pa][:, :, ia].astype(np.float64), tb.A[:, pb][:, :, ib].astype(np.float64)
+    col = np.sqrt(((A - B) ** 2).sum(axis=(0, 1))) / np.maximum(np.sqrt((A ** 2).sum(axis=(0, 1))), 1e-30)
+    return float(np.linalg.norm(A - B) / np.linalg.norm(A)), float(col.max())
+
+
+def main(argv: list[str] | None = None) -> None:
+    from bench.cluster_bench import _capture
+    from bench.sections import invocation, write_section
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="direct", choices=["direct", "auto"])
+    ap.add_argument("--write", action="store_true")
+    args = ap.parse_args(argv)
+    cap = _capture()
+    ref = _build(cap, "llvm0", "llvm", 0, args.model)
+    other = _build(cap, "llvm1", "llvm", 1, args.model)
+    cuda = _build(cap, "cuda0", "cuda", 0, args.model)
+    mc, gpu = _diff(ref["out"], other["out"]), _diff(ref["out"], cuda["out"])
+    rows = ["| build | wall (s) | CPU (s) | rel. difference from llvm seed 0 (all / worst column) |",
+            "|---|---:|---:|---|",
+            f"| llvm, seed 0 | {ref['wall']:.1f} | {ref['cpu']:.1f} | - |",
+            f"| llvm, seed 1 (the Monte Carlo tolerance) | {other['wall']:.1f} | {other['cpu']:.1f} | "
+            f"{mc[0]:.2e} / {mc[1]:.2e} |",
+            f"| cuda, seed 0 | {cuda['wall']:.1f} | {cuda['cpu']:.1f} | {gpu[0]:.2e} / {gpu[1]:.2e} |"]
+    verdict = "within" if gpu[0] <= mc[0] and gpu[1] <= mc[1] else "**outside**"
+    body = (f"{invocation('bench.variant_bench', argv)}, model {args.model}\n\n" + "\n".join(rows)
+            + f"\n\ncuda against llvm is {verdict} the Monte Carlo tolerance.")
+    print(body)
+    if args.write:
+        write_section("variant", body, "GPU: cuda_ad_rgb against llvm_ad_rgb (issue 25)")
+
+
+if __name__ == "__main__":
+    main()
