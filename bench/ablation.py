@@ -72,7 +72,13 @@ def unknown_scene(quick: bool) -> Path:
     est = estimator()
     # split targets: indirect part at 4096 spp (~0.15% render noise), so the 0.1% camera noise is of its order
     size, spp = (64, 128) if quick else (128, 4096)
-    cap = OUT / f"dots-forest-3rot-{size}px-{est}-{spp}spp"
+    # -std: truth files in the standard lat-long layout (issue 23); a render cached before it is converted once
+    old = OUT / f"dots-forest-3rot-{size}px-{est}-{spp}spp"
+    cap = old.with_name(old.name + "-std")
+    if not (cap / "capture.toml").is_file() and (old / "capture.toml").is_file():
+        from bench.run import convert_old_render
+
+        convert_old_render(old, cap)
     if not (cap / "capture.toml").is_file():
         shutil.rmtree(cap, ignore_errors=True)
         kw = {"estimator": est} if est != "path" else {}

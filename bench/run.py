@@ -66,8 +66,10 @@ def convert_old_render(old: Path, new: Path) -> None:
     tmp = new.with_name(new.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(old, tmp)
-    truth = tmp / "truth" / "envmap.exr"
-    write_exr(truth, to_file(read_exr(truth)))
+    listed = tmp / "truth" / "truth.json"
+    envmaps = json.loads(listed.read_text()).get("envmaps", {}) if listed.is_file() else {}
+    for rel in list(envmaps.values()) or ["truth/envmap.exr"]:  # every lat-long truth the capture lists
+        write_exr(tmp / rel, to_file(read_exr(tmp / rel)))
     tmp.rename(new)
     log(f"  converted the cached render {old.name} to standard lat-long truth files")
 
