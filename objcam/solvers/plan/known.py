@@ -48,16 +48,25 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
     t0 = time.perf_counter()
     edge_info = None
     with single_blas_thread():
+        weak = known_weak(tr, params)
         ls, ls_source, auto_info = choose_ls(target, d, grid, params, linear=edges)
         if edges:
-            X, kkt, obj, iters, edge_info = solve_known_edges(tr, grid, use, y, ls, params.lr, params)
+            X, kkt, obj, iters, edge_info = solve_known_edges(tr, grid, use, y, ls, params.lr, params, weak)
         else:
-            X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache)
+            X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s = time.perf_counter() - t0
     info = {"channels_in_A": int(tr.A.shape[0]), "solve_seconds": round(solve_s, 4),
             "iterations": int(iters), "kkt_residual_max": float(kkt.max()), "objective": obj.tolist(),
             "ls_relative": ls, "ls_source": ls_source}
-    return known_solution(tr, grid, d, X, params, info, edge_info, auto_info)
+    return known_solution(tr, grid, d, X, params, info, edge_info, auto_info, weak)
+
+
+def known_weak(tr, params: SolveParams) -> np.ndarray | None:
+    """(N,) bool: A's texels held to params.weak_texels (rules.weak_texels), found once per target; None when
+    they are kept or the A is supersampled (its refined basis does not hold them apart)."""
+    if params.weak_texels == "keep" or tr.output_height != tr.env_height:
+        return None
+    return weak_texels(tr, params.weak_fraction)
 
 
 def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear: bool):
@@ -83,10 +92,10 @@ def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear:
 
 
 def solve_known_quadratic(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
-                          params: SolveParams, gram_cache: dict):
+                          params: SolveParams, gram_cache: dict, weak: np.ndarray | None = None):
     """The quadratic prior (method exact: bound-constrained minimiser; paper: the method's damped steps), per
-    channel of A. ``gram_cache`` keeps the regularised Gram matrix per (A, channel, usable pixels, weights).
-    Returns X (N, 3), KKT residual (3,), objective (3,), iterations."""
+    channel of A. ``gram_cache`` keeps the regularised Gram matrix per (A, channel, usable pixels, weights);
+    ``weak``: :func:`known_weak`. Returns X (N, 3), KKT residual (3,), objective (3,), iterations."""
     C = tr.A.shape[0]
     X, kkt, obj, iters = np.zeros((tr.A.shape[2], 3)), np.zeros(3), np.zeros(3), 0
     grams = None
@@ -102,7 +111,7 @@ def solve_known_quadratic(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls:
             if not use.all():
                 G = G - solvers.gram(tr.A[c][~use])
             ls_abs, lr_abs = solvers.absolute_weights(G, ls, lr)
-            P = known_basis(tr, params)
+            P = known_basis(tr, params, weak=weak)
             D = solved_edges(solvers.difference_operator(grid, tr.texel_index), P)
             Q = solvers.regularized_gram(G, D, ls_abs, lr_abs)
             gram_cache[key] = (Q, None) if P is None else (merge_gram(P, Q), P)
@@ -128,7 +137,7 @@ def known_basis(tr, params: SolveParams, split: np.ndarray | None = None, weak: 
         P = texel_basis(tr.grid, tr.texel_index, g)
         if params.weak_texels == "keep":
             return P
-        if weak is None:  # (N,) bool: the texels held to params.weak_texels (rules.weak_texels)
+        if weak is None:  # (N,) bool: the texels held to params.weak_texels (:func:`known_weak`)
             weak = weak_texels(tr, params.weak_fraction)
         return restrict_weak(tr.grid, tr.texel_index, P, weak, params.weak_texels)
     if split is None:
@@ -137,12 +146,12 @@ def known_basis(tr, params: SolveParams, split: np.ndarray | None = None, weak: 
 
 
 def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: SolveParams, solve: dict,
-                   edge_info: dict | None, auto_info: dict | None) -> TargetSolution:
+                   edge_info: dict | None, auto_info: dict | None, weak: np.ndarray | None) -> TargetSolution:
     """The target's envmap, prediction and solve.json from X (N, 3) on A's texels; ``solve``: the solve's own
-    record (channels_in_A, solve_seconds, iterations, kkt_residual_max, objective, ls_relative, ls_source)."""
+    record (channels_in_A, solve_seconds, iterations, kkt_residual_max, objective, ls_relative, ls_source);
+    ``weak``: :func:`known_weak`."""
     use, y = d.use, d.y
     env = tr.envmap_from_x(X)
-    weak = weak_texels(tr, params.weak_fraction) if params.weak_texels != "keep" else None
     P = known_basis(tr, params, weak=weak)
     solved = tr.texel_index if P is None else tr.texel_index[sp.csr_matrix(P).getnnz(axis=1) > 0]
     mask = texel_mask(grid, solved)  # weak texels excluded (weak_texels=exclude) are not solved
@@ -175,7 +184,7 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
 
 
 def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
-                      params: SolveParams):
+                      params: SolveParams, weak: np.ndarray | None = None):
     """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info."""
     grams_all = tr.gram()
     C = tr.A.shape[0]
@@ -194,7 +203,7 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     D = solvers.difference_operator(grid, tr.texel_index)
     eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
     yy = np.einsum("ij,ij->j", Y, Y)
-    basis = known_basis(tr, params)
+    basis = known_basis(tr, params, weak=weak)
     D = solved_edges(D, basis)
     refine_info = None
     if tr.output_height != tr.env_height:

@@ -102,11 +102,11 @@ def discrepancy_sigma(target, y: np.ndarray, rule: str) -> float | None:
     return float(absolute_noise(y, target.noise_sigma))
 
 
-def relative_column_norms(G: np.ndarray, directions: np.ndarray) -> np.ndarray:
+def relative_column_norms(gram_diag: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(N,) each texel's column norm sqrt(diag(G)) over the median one above the horizon (over all texels when
-    none is above): how strongly the photo sees each direction. G: (N, N) A^T A (a channel mean);
+    none is above): how strongly the photo sees each direction. gram_diag: (N,) diag(A^T A) (a channel mean);
     directions: (N, 3) the texels' unit directions, z up."""
-    col = np.sqrt(np.clip(np.diag(G), 0, None))
+    col = np.sqrt(np.clip(gram_diag, 0, None))
     up = directions[:, 2] > 0
     ref = float(np.median(col[up])) if up.any() else float(np.median(col))
     return col / max(ref, 1e-300)
@@ -116,4 +116,5 @@ def weak_texels(tr, fraction: float) -> np.ndarray:
     """(N,) bool: A's texels whose relative column norm (:func:`relative_column_norms` of the channel-mean
     A^T A) is under ``fraction``: directions the photo barely sees (a sliver below the horizon past the support's
     edge sees ~1e-4-0.05 of a typical texel on the hard suite; the lowest row above it 0.14-1.2)."""
-    return relative_column_norms(tr.gram().mean(axis=0), tr.directions) < fraction
+    grams = tr.gram()  # (C, N, N): only the diagonals are needed
+    return relative_column_norms(np.einsum("cii->i", grams) / grams.shape[0], tr.directions) < fraction

@@ -88,7 +88,7 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         G = G - sum(solvers.gram(tr.A[c][~use]) for c in range(tr.A.shape[0])) / tr.A.shape[0]
     jb = int(np.argmax(lum))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(tr.directions[jb, 2], -1, 1))))
-    rec["brightest_seen"] = float(relative_column_norms(G, tr.directions)[jb])
+    rec["brightest_seen"] = float(relative_column_norms(np.diag(G), tr.directions)[jb])
     if sigma_rel:
         rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
         D = solvers.difference_operator(tr.grid, tr.texel_index)
