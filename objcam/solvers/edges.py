@@ -94,7 +94,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 yy: np.ndarray, D: sp.csr_matrix, ls_abs: float, lr_abs: float, steps: int = 6,
                 eps_rel: float = 0.05, tol: float = 1e-4,
                 solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
-                tone_floor: float = 0.05, basis: sp.spmatrix | None = None) -> EdgeResult:
+                tone_floor: float = 0.05, basis: sp.spmatrix | None = None,
+                start: EdgeResult | None = None, warm: EdgeResult | None = None) -> EdgeResult:
     """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
     grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
@@ -105,6 +106,11 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     over x = P z (grams, rhs and D are given on the N texels and merged here; the edge means of the tone weights
     and the ridge are those of the fine x, so F is the same function restricted to that subspace). The returned
     x is P z; ``results`` hold the merged problem's solves (their KKT residuals are in z).
+    start: an earlier result of the same prior (same D, ls, eps_rel, tone, basis) on other data (the same photo
+    with outlier pixels removed, objcam.solvers.outliers): the steps continue from its estimate, edge scale s and
+    weights instead of a new quadratic solve, so the prior stays the same function F.
+    warm: an earlier result on similar data whose free sets (x > 0) start the first exact solve (a fresh solve,
+    its own edge scale, but not a cold start); ignored with ``start``.
     """
     M = edge_means(D) if tone > 0 else None
     ridge_w = np.ones(D.shape[1])  # texels per unknown: the ridge of the fine x
@@ -128,6 +134,17 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     passive: list[np.ndarray | None] = [None] * len(grams)
     history: list[float] = []
     s = eps = 0.0
+    first = 0
+    if warm is not None and start is None:
+        z = np.asarray(warm.x if basis is None else (P.T @ warm.x) / ridge_w[:, None])
+        passive = [z[:, list(ch)] > 0 for ch in chans]
+    if start is not None and start.edge_scale > 0:
+        X = np.asarray(start.x if basis is None else (P.T @ start.x) / ridge_w[:, None], dtype=np.float64)
+        s, eps, first = start.edge_scale, eps_rel * start.edge_scale, 1
+        passive = [X[:, list(ch)] > 0 for ch in chans]
+        if tone > 0:
+            bw = tone_weights(M, X, tone, tone_floor)
+        w = bw * s / np.maximum(edge_norms(D, X), eps)
 
     def objective(X: np.ndarray) -> float:
         data = 0.0
@@ -137,7 +154,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
         return data + float(yy.sum()) + lr_abs * float(np.einsum("n,nc,nc->", ridge_w, X, X)) + prior
 
-    for step in range(steps + 1):
+    for step in range(first, steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
@@ -154,7 +171,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 break
             eps = eps_rel * s
         history.append(objective(X))
-        if step > 1 and abs(history[-2] - history[-1]) <= tol * abs(history[-2]):
+        if len(history) > 2 - first and abs(history[-2] - history[-1]) <= tol * abs(history[-2]):
             break
         if tone > 0:
             bw = tone_weights(M, X, tone, tone_floor)
@@ -162,4 +179,4 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
     if basis is not None:
         X = np.asarray(P @ X)
-    return EdgeResult(X, results, history, len(history) - 1, s, kept, float(tone))
+    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone))

@@ -7,11 +7,12 @@ as joint problems, or the Adam baseline; every setting in :class:`objcam.solvers
 writes what it returns.
 
 Writes per target ``<target>/``: envmap.exr (full lat-long, 0 where unsolved), envmap_mask.png (255 = solved
-texel), prediction.exr, residual.exr (target - prediction, 0 at unused pixels), target.exr (the pooled target
-that was fitted), tonemapped PNGs of each, and solve.json; with unknown albedo also albedo.exr (pooled image
-size, 0 where not estimated), albedo.png and albedo_mask.png (255 where the albedo was unknown and estimated);
-with a supersampled A (``transport.supersample``) also envmap_fine.exr and envmap_fine_mask.png on A's grid,
-envmap.exr being their area average. Lat-long files (envmap*.exr, envmap*.png) are in the standard file convention
+texel), prediction.exr, residual.exr (target - prediction, 0 at unused pixels), outliers.png (255 = a pixel
+dropped as an outlier, when any were), target.exr (the pooled target that was fitted), tonemapped PNGs of each,
+and solve.json; with unknown albedo also albedo.exr (pooled image size, 0 where not estimated), albedo.png and
+albedo_mask.png (255 where the albedo was unknown and estimated); with a supersampled A
+(``transport.supersample``) also envmap_fine.exr and envmap_fine_mask.png on A's grid, envmap.exr being their
+area average. Lat-long files (envmap*.exr, envmap*.png) are in the standard file convention
 (objcam.envmap.to_file).
 """
 
@@ -92,6 +93,10 @@ def write_target(d: Path, sol: TargetSolution, data: TargetData) -> None:
     ref = write_tonemapped_png(d / "target.png", data.pooled)
     write_tonemapped_png(d / "prediction.png", sol.prediction, exposure_ref=ref)
     write_tonemapped_png(d / "residual.png", np.abs(resid), exposure_ref=ref)
+    if sol.rejected is not None:  # the pixels the solve dropped as outliers (objcam.solvers.outliers)
+        mask = np.zeros(data.pooled.shape[:2], bool)
+        mask.ravel()[data.transport.pixel_index[sol.rejected]] = True
+        write_png(d / "outliers.png", mask.astype(float))
     if sol.albedo is not None:
         write_exr(d / "albedo.exr", sol.albedo)
         write_png(d / "albedo.png", np.clip(sol.albedo, 0, 1) ** (1 / 2.2))  # albedo is in [0, 1]: no exposure

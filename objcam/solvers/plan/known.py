@@ -25,10 +25,11 @@ from objcam import solvers
 from objcam.envmap import EnvGrid
 from objcam.solvers.basis import merge_gram, restrict_weak, solved_edges, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
-from objcam.solvers.edges import solve_edges
-from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN
+from objcam.solvers.edges import EdgeResult, solve_edges
+from objcam.solvers.outliers import outlier_rows
+from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
-from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, noise_ls, texel_group, weak_texels
+from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_noise, noise_ls, texel_group, weak_texels
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.threads import parallel_map, single_blas_thread
@@ -50,15 +51,31 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
     with single_blas_thread():
         weak = known_weak(tr, params)
         ls, ls_source, auto_info = choose_ls(target, d, grid, params, linear=edges)
+        rejected = None
         if edges:
-            X, kkt, obj, iters, edge_info = solve_known_edges(tr, grid, use, y, ls, params.lr, params, weak)
+            sigma_abs = noise_per_value(target, d) if params.outliers != "keep" else None
+            X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
+                                                                        weak, sigma_abs)
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s = time.perf_counter() - t0
     info = {"channels_in_A": int(tr.A.shape[0]), "solve_seconds": round(solve_s, 4),
             "iterations": int(iters), "kkt_residual_max": float(kkt.max()), "objective": obj.tolist(),
             "ls_relative": ls, "ls_source": ls_source}
-    return known_solution(tr, grid, d, X, params, info, edge_info, auto_info, weak)
+    sol = known_solution(tr, grid, d if rejected is None else d._replace(use=use & ~rejected), X, params, info,
+                         edge_info, auto_info, weak)
+    sol.rejected = rejected
+    return sol
+
+
+def noise_per_value(target, d: TargetData) -> float | None:
+    """The stated noise of one fitted pixel value in absolute units (the target's noise_sigma over the pooling,
+    else estimated from the image, times the median pixel: objcam.transport.auto.absolute_noise); None when
+    unknown."""
+    from objcam.transport.auto import absolute_noise
+
+    sigma_rel, _ = fitted_noise(target, d.pooled, d.pooled_ok, d.transport.downsample)
+    return absolute_noise(d.y[d.use], sigma_rel) if sigma_rel else None
 
 
 def known_weak(tr, params: SolveParams) -> np.ndarray | None:
@@ -184,8 +201,10 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
 
 
 def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
-                      params: SolveParams, weak: np.ndarray | None = None):
-    """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info."""
+                      params: SolveParams, weak: np.ndarray | None = None, sigma_abs: float | None = None):
+    """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info and the
+    (M,) bool rows of A dropped as outliers (None when none were; params.outliers, objcam.solvers.outliers, with
+    ``sigma_abs`` the stated noise of one fitted value, None when unknown)."""
     grams_all = tr.gram()
     C = tr.A.shape[0]
     grams, rhs, chans = [], [], []
@@ -220,11 +239,18 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     if split:
         weights.append(solvers.absolute_weights(G_ref, ls * params.chroma_ls_factor, lr)[0])
 
-    def one(w: float):
-        return solve_edges(grams, rhs, chans, yy, D, w, lr_abs, steps=params.edge_steps, eps_rel=eps,
-                           tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=basis)
+    def one(job: tuple) -> EdgeResult:  # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from)
+        w, steps, (g, b, y2), start, warm = job + (None,) * (5 - len(job))
+        return solve_edges(g, b, chans, y2, D, w, lr_abs, steps=steps, eps_rel=eps, tone=params.edge_tone,
+                           tone_floor=params.edge_tone_floor, basis=basis, start=start, warm=warm)
 
-    runs = parallel_map(one, weights)  # independent solves: a thread each (the caller holds one BLAS thread)
+    # independent solves (luminance and chroma): a thread each (the caller holds one BLAS thread)
+    if params.outliers == "keep":
+        runs = parallel_map(one, [(w, params.edge_steps, (grams, rhs, yy)) for w in weights])
+        rejected = outlier_info = None
+    else:
+        runs, rejected, outlier_info = _robust_runs(one, weights, tr, use, Y, chans, sigma_abs, params,
+                                                    (grams, rhs, yy))
     res = runs[0]
     kkt = np.zeros(3)
     iters = 0
@@ -240,6 +266,8 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
             "monotone": non_increasing(hist)}
     if refine_info:
         info["refine"] = refine_info
+    if outlier_info is not None:
+        info["outliers"] = outlier_info
     X = res.x
     if split:
         X = luminance_with_chroma(res.x, runs[1].x)
@@ -250,7 +278,79 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
                           "black_texels_per_channel": [int(v) for v in (X <= 0).sum(axis=0)]}
     elif params.chroma_ls_factor > 0:
         info["chroma"] = {"ls_factor": params.chroma_ls_factor, "skipped": "A differs per channel"}
-    return X, kkt, obj, iters, info
+    return X, kkt, obj, iters, info, rejected
+
+
+def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: list, sigma_abs: float | None,
+                 params: SolveParams, data: tuple) -> tuple[list, np.ndarray | None, dict]:
+    """The edge solves with outlier pixels dropped (params.outliers reject) or down-weighted (huber).
+
+    1. OUTLIER_AFTER_STEPS edge steps on every pixel; the outliers of that fit (objcam.solvers.outliers) are a
+       first set. None: the steps continue to params.edge_steps, the plain solve.
+    2. When that fit misses its ordinary pixels by more than OUTLIER_CLEAN_SPREAD x the noise (robust spread;
+       or the noise is unknown), outliers bent it: a fresh solve without the set (its own quadratic start, so
+       outliers do not set the edge prior's scale; warm-started), OUTLIER_AFTER_STEPS steps, and the outliers of
+       its fit over every usable pixel: a pixel the contaminated first fit flagged comes back.
+    3. The last solve continues on the last set to params.edge_steps.
+
+    ``one((weight, steps, (grams, rhs, yy), start, warm))`` runs solve_edges; ``data`` holds the full grams, rhs
+    and yy. Returns (runs, rejected (M,) bool or None, record)."""
+    k0 = min(OUTLIER_AFTER_STEPS, params.edge_steps)
+
+    def outliers(runs: list) -> tuple[np.ndarray, np.ndarray, dict]:
+        fit = tr.predict_pixels(runs[0].x)[use]  # (float32 products: far below the noise)
+        rows, rec = outlier_rows(Y, fit, sigma_abs, params.outlier_threshold, OUTLIER_MAX_SHARE)
+        w = rec.pop("weights")
+        return rows, (1.0 - w[rows] if params.outliers == "huber" else np.ones(int(rows.sum()))), rec
+
+    def without(rows: np.ndarray, drop: np.ndarray, base: tuple, base_drop: np.ndarray) -> tuple[np.ndarray, tuple]:
+        """(rejected (M,), data without ``rows`` at ``drop``) from ``base``, the data at ``base_drop`` (M_use,):
+        only the rows whose weight changes are touched."""
+        d = np.zeros(len(Y))
+        d[rows] = drop
+        change = d - base_drop
+        sel = change != 0
+        rejected = np.zeros(use.shape, bool)
+        rejected[np.flatnonzero(use)[rows]] = True
+        moved = np.zeros(use.shape, bool)
+        moved[np.flatnonzero(use)[sel]] = True
+        return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans), d)
+
+    runs = parallel_map(one, [(w, k0, data) for w in weights])
+    rows, drop, rec = outliers(runs)
+    if not rows.any():
+        rec["rounds"] = 1
+        if params.edge_steps > k0 and all(r.steps == k0 for r in runs):  # (fewer steps: converged)
+            runs = parallel_map(one, [(w, params.edge_steps - k0, data, r) for w, r in zip(weights, runs)])
+        return runs, None, rec
+    first = int(rows.sum())
+    rejected, (now, d1) = without(rows, drop, data, np.zeros(len(Y)))
+    if sigma_abs and rec["robust_scale"] <= OUTLIER_CLEAN_SPREAD * sigma_abs:
+        # the fit explains its ordinary pixels to a few noise sigmas: the outliers did not bend it, its set
+        # stands and the solve continues without it
+        rec["rounds"] = 1
+    else:
+        runs = parallel_map(one, [(w, k0, now, None, r) for w, r in zip(weights, runs)])
+        rows, drop, rec = outliers(runs)
+        rec.update(rounds=2, first_round_pixels=first)
+        rejected, (now, _) = without(rows, drop, now, d1)
+        rejected = rejected if rows.any() else None
+    if params.edge_steps > k0:
+        runs = parallel_map(one, [(w, params.edge_steps - k0, now, r) for w, r in zip(weights, runs)])
+    return runs, rejected, rec
+
+
+def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: list, rhs: list, yy: np.ndarray,
+              chans: list) -> tuple[list, list, np.ndarray]:
+    """(grams, rhs, yy) of the data term with A's rows ``rows`` (M,) bool weighted by 1 - drop (K,) (drop 1:
+    removed, negative: added back): A_c^T A_c - A_o^T diag(drop) A_o, A_c^T y - A_o^T diag(drop) y_o, per block;
+    Yo (K, 3) their pixels. The products are in A's own float32 (its stored precision)."""
+    grams, rhs = list(grams), list(rhs)
+    for c in range(len(grams)):
+        Ao = np.asarray(tr.A[c][rows], np.float32)
+        grams[c] = grams[c] - (Ao.T @ (drop[:, None].astype(np.float32) * Ao)).astype(np.float64)
+        rhs[c] = rhs[c] - Ao.T.astype(np.float64) @ (drop[:, None] * Yo[:, chans[c]])
+    return grams, rhs, yy - np.einsum("i,ij,ij->j", drop, Yo, Yo)
 
 
 def non_increasing(history: list[float]) -> bool:

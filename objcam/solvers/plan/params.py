@@ -25,6 +25,7 @@ from objcam.solvers.plan.defaults import (
     JOINT_TOL_FINAL,
     LP_ONE_ILLUMINATION,
     LS_NOISE_FACTOR,
+    OUTLIER_K,
     REFINE_FRACTION,
     TEXEL_GROUP_JOINT,
     TEXEL_GROUP_KNOWN,
@@ -83,6 +84,16 @@ class SolveParams(BaseModel):
         "others. Measured (bench/results.md, session 14): exclude raises SSIM on both suites (hard median at 2% "
         "0.648 -> 0.685, core sunrise 0.723 -> 0.778) and ends the energy put below the horizon (up to 6.6x the "
         "truth's above it), at a cost in the 0-10 deg band's energy under high lamps; tie changes little")
+    outliers: Literal["huber", "reject", "keep"] = Field(
+        "huber", description="known albedo, prior=edges: pixels whose residual exceeds outlier_threshold x "
+        "max(the stated noise, the residuals' robust spread), found twice (after the first edge steps, then from a "
+        "fresh solve without them), are down-weighted to threshold / |residual| ('huber') or dropped ('reject') "
+        "and the solve continues on the rest (fireflies, hot pixels, glints, geometry the model lacks: "
+        "objcam.solvers.outliers; nothing is done past a tenth of the pixels); 'keep': plain least squares. "
+        "Measured on the hard-case suite and the core bench (bench/results.md, issue 22)")
+    outlier_threshold: float = Field(OUTLIER_K, gt=0, description="outliers=reject: the residual, in units of "
+                                     "max(noise, robust spread), beyond which a pixel is dropped (6: a normal value "
+                                     "exceeds it once in 5e8)")
     weak_fraction: float = Field(0.1, gt=0, lt=1, description="weak_texels: the column-norm fraction under which "
                                  "a texel counts as barely seen")
     refine_fraction: float = Field(REFINE_FRACTION, ge=0, le=1, description="supersampled A "

@@ -35,6 +35,7 @@ class TargetSolution:
     albedo: (H', W', 3) the estimated albedo (0 where not estimated) and albedo_mask: (H', W') bool, where it was
     unknown and estimated; both None for a known albedo.
     fine: (envmap, mask) on a supersampled A's grid when ``envmap`` and ``mask`` are their area average.
+    rejected: (M,) bool, A's rows the solve dropped as outliers (objcam.solvers.outliers); None when none were.
     """
 
     envmap: np.ndarray
@@ -44,6 +45,7 @@ class TargetSolution:
     albedo: np.ndarray | None = None
     albedo_mask: np.ndarray | None = None
     fine: tuple[np.ndarray, np.ndarray] | None = None
+    rejected: np.ndarray | None = None
 
 
 def texel_mask(grid: EnvGrid, texel_index: np.ndarray) -> np.ndarray:

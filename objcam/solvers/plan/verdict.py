@@ -16,7 +16,9 @@ No ground truth is used: every measure comes from the photo, the model and the s
 * ``below_horizon_energy``: the share of the map's energy (luminance x solid angle) the solve put below the
   horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
   texel's elevation and its column norm over the median column norm (how strongly the photo sees that direction).
-* ``pixels_excluded``: the share of A's pixels the solve could not use (saturated, invalid, hot).
+* ``pixels_excluded``: the share of A's pixels the solve could not use (saturated, invalid, hot);
+  ``pixels_rejected``: the share of the usable ones it dropped as outliers (objcam.solvers.outliers). chi2 is over
+  the pixels it fitted.
 * the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
 
 Thresholds (objcam.solvers.plan.defaults, ``VERDICT_*``) and how they were chosen: bench/results.md, issue 22.
@@ -36,6 +38,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_CHI2_YELLOW,
     VERDICT_EXCLUDED_YELLOW,
     VERDICT_MARGIN_YELLOW,
+    VERDICT_REJECTED_YELLOW,
     VERDICT_SEEN_YELLOW,
     VERDICT_UNCERTAIN_RED,
     VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
@@ -70,7 +73,8 @@ def texel_uncertainty(G: np.ndarray, D, sigma_rel: float, sigma_abs: float, lr_r
 def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     """The verdict record of one target (solve.json's ``verdict``): ``grade``, ``reasons`` (one line each, the
     worst first) and the measures above."""
-    tr, use, y = d.transport, d.use, d.y
+    tr, y = d.transport, d.y
+    use = d.use if sol.rejected is None else d.use & ~sol.rejected  # the pixels the solve fitted
     env = sol.fine[0] if sol.fine is not None else sol.envmap  # A's own grid
     X = tr.x_from_envmap(env).astype(np.float64)
     fit = np.asarray(sol.prediction, np.float64).reshape(-1, 3)[tr.pixel_index][use]  # the solve's own model
@@ -81,7 +85,8 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     energy = np.clip(lum, 0, None) * omega
     total = max(float(energy.sum()), 1e-300)
     rec: dict = {"noise_per_fitted_pixel": sigma_rel, "noise_source": noise_source,
-                 "pixels_excluded": float(1.0 - use.mean()),
+                 "pixels_excluded": float(1.0 - d.use.mean()),
+                 "pixels_rejected": float(0.0 if sol.rejected is None else sol.rejected.sum() / max(d.use.sum(), 1)),
                  "below_horizon_energy": float(energy[~up].sum() / total)}
     G = tr.gram().mean(axis=0)
     if not use.all():
@@ -134,6 +139,9 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
         yellow.append(f"{below:.0%} of the energy below the horizon")
     if m.get("brightest_seen", 1.0) < VERDICT_SEEN_YELLOW and el >= 0:
         yellow.append(f"the brightest light is in a poorly seen direction (elevation {el:.0f} deg)")
+    if m.get("pixels_rejected", 0.0) > VERDICT_REJECTED_YELLOW:
+        yellow.append(f"{m['pixels_rejected']:.1%} of the pixels dropped as outliers (fireflies, hot pixels, glints "
+                      "or geometry the model lacks; see residual.exr)")
     if m.get("pixels_excluded", 0.0) > VERDICT_EXCLUDED_YELLOW:
         yellow.append(f"{m['pixels_excluded']:.0%} of the pixels unusable (saturated, invalid or hot)")
     mg = m.get("transport_margin")
