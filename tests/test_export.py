@@ -342,3 +342,40 @@ def test_bake_takes_the_camera_that_sees_each_texel_finest():
     np.testing.assert_allclose(only1, 0.27, atol=1e-6)  # camera 1
     np.testing.assert_allclose(patch, 0.8, atol=1e-6)  # only camera 2 sees it
     assert baked.record["texels_per_pixel"] == pytest.approx(16.0, rel=0.01)
+
+
+def test_bounce_scale_rule(tmp_path):
+    """objcam.export.scale on a 4 x 4 pooled image: k = the transport's mean bounce albedo under the estimated
+    support pixels over the solve's mean albedo there (0.586 / 0.15), and 1 when the scale is pinned, when A
+    has no interreflection parts, or when no estimated pixel lies over a support cell."""
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from objcam.export.scale import bounce_scale
+    from objcam.image_io import write_exr
+
+    node = np.full(16, -1)
+    node[8:] = [0, 0, 1, 1, 2, 2, 3, 3]  # the lower half over four support cells, the upper half the object
+    np.savez(tmp_path / "bounce.npz", node_rho=np.array([[0.5] * 3, [0.7] * 3, [0.5] * 3, [0.7] * 3], np.float32),
+             pixel_node=node)
+    alb = np.full((4, 4, 3), 0.15, np.float32)
+    alb[:2] = 0.9  # the object's albedo takes no part
+    alb[3, 3] = 5.0  # left out by the mask
+    mask = np.full((4, 4), 255, np.uint8)
+    mask[3, 3] = 0
+    write_exr(tmp_path / "albedo.exr", alb)
+    Image.fromarray(mask).save(tmp_path / "albedo_mask.png")
+    tr = SimpleNamespace(has_bounce_parts=True, folder=tmp_path, pixel_index=np.arange(16), image_shape=(4, 4),
+                         unknown_albedo=np.ones(16, bool))
+    solve = {"albedo": "unknown", "scale_ambiguous": True}
+    (tmp_path / "solve.json").write_text(json.dumps(solve))
+    b = bounce_scale(tr, tmp_path)
+    # the seven estimated pixels over cells 0, 0, 1, 1, 2, 2, 3
+    assert b.k == pytest.approx(np.mean([0.5, 0.5, 0.7, 0.7, 0.5, 0.5, 0.7]) / 0.15, rel=1e-6), b.record
+    assert b.record["pixels"] == 7
+    direct = SimpleNamespace(**{**vars(tr), "has_bounce_parts": False})
+    known = SimpleNamespace(**{**vars(tr), "unknown_albedo": np.zeros(16, bool)})
+    for change, tr2 in (({"scale_ambiguous": False}, tr), ({}, direct), ({}, known)):
+        (tmp_path / "solve.json").write_text(json.dumps({**solve, **change}))
+        assert bounce_scale(tr2, tmp_path).k == 1.0, change

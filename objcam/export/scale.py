@@ -50,20 +50,27 @@ def bounce_scale(transport, solve_dir: Path) -> BounceScale:
         info = {}
     if info.get("albedo") != "unknown" or not info.get("scale_ambiguous"):
         return BounceScale(1.0, {"albedo_scale": 1.0, "albedo_scale_rule": "the solve's scale is absolute"})
-    parts = transport.bounce_parts()
-    if parts is None:
+    if not transport.has_bounce_parts:
         return BounceScale(1.0, {"albedo_scale": 1.0, "albedo_scale_rule": "A has no interreflection parts: the "
                                  "render of a direct A does not depend on the albedo's scale"})
-    alb = read_exr(Path(solve_dir) / "albedo.exr")[..., :3].astype(np.float64)
-    mask = np.asarray(Image.open(Path(solve_dir) / "albedo_mask.png"))
+    from objcam.transport.storage import BOUNCE
+
+    with np.load(transport.folder / BOUNCE) as z:  # two small members, not the gather's matrices
+        node_rho, node = np.asarray(z["node_rho"]), np.asarray(z["pixel_node"])
+    files = [Path(solve_dir) / "albedo.exr", Path(solve_dir) / "albedo_mask.png"]
+    if not all(f.is_file() for f in files):
+        return BounceScale(1.0, {"albedo_scale": 1.0, "albedo_scale_rule": "the solve wrote no albedo"})
+    alb = read_exr(files[0])[..., :3].astype(np.float64)
+    mask = np.asarray(Image.open(files[1]))
     mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+    if alb.shape[:2] != tuple(transport.image_shape) or mask.shape != alb.shape[:2]:
+        return BounceScale(1.0, {"albedo_scale": 1.0, "albedo_scale_rule": "the albedo is not at A's pooled size"})
     pix = np.asarray(transport.pixel_index)
     rho = alb.reshape(-1, 3)[pix].mean(axis=1)
-    node = np.asarray(parts["pixel_node"])
     on = mask.reshape(-1)[pix] & (node >= 0) & np.asarray(transport.unknown_albedo, bool) & (rho > 0)
     if not on.any():
         return BounceScale(1.0, {"albedo_scale": 1.0, "albedo_scale_rule": "no estimated pixel over a support cell"})
-    guess = float(np.mean(parts["node_rho"][node[on]].mean(axis=1)))
+    guess = float(np.mean(node_rho[node[on]].mean(axis=1)))
     est = float(np.mean(rho[on]))
     k = guess / est
     return BounceScale(k, {"albedo_scale": k, "albedo_scale_rule": "mean bounce albedo A' assumed over the solve's "
