@@ -32,7 +32,8 @@ import numpy as np
 # per worker process: the last contexts loaded (path -> model), so a worker loads each camera's model once
 _CONTEXTS: dict[str, object] = {}
 _KEEP = 2
-_STATS = ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined")
+_STATS = ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined",
+          "pairs_settled")
 
 
 def _write_context(path: Path, obj) -> str:
