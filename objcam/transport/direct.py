@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from objcam.dr_memory import padded
 from objcam.envmap import EnvGrid
 from objcam.scene import use_mitsuba
 from objcam.transport.geometry import PixelSamples, SceneGeometry
@@ -433,20 +434,20 @@ class DirectModel:
         lat = sobol4(self.n_sub)  # ray i of round r pairs sub-pixel sample r K + i with direction point r K + i
         rho = s.rho.reshape(-1, 3).astype(np.float32)
         d = {
-            "P": mi.Point3f(pos[:, 0], pos[:, 1], pos[:, 2]),
-            "N": mi.Vector3f(nrm[:, 0], nrm[:, 1], nrm[:, 2]),
-            "H": mi.Bool(s.hit.ravel()),
-            "G": mi.UInt32(s.pixel_index.astype(np.uint32)),
-            "LU": mi.UInt32(lat[:, 2]),
-            "LV": mi.UInt32(lat[:, 3]),
-            "CT": mi.Float(np.cos(tab.theta0).astype(np.float32)),
-            "CB": mi.Float(np.cos(tab.theta1).astype(np.float32)),
-            "OM": mi.Float((tab.omega_row / (np.pi * self.k)).astype(np.float32)),
+            "P": mi.Point3f(*(padded(pos[:, i]) for i in range(3))),
+            "N": mi.Vector3f(*(padded(nrm[:, i]) for i in range(3))),
+            "H": mi.Bool(padded(s.hit.ravel())),
+            "G": mi.UInt32(padded(s.pixel_index, np.uint32)),
+            "LU": mi.UInt32(padded(lat[:, 2])),
+            "LV": mi.UInt32(padded(lat[:, 3])),
+            "CT": mi.Float(padded(np.cos(tab.theta0), np.float32)),
+            "CB": mi.Float(padded(np.cos(tab.theta1), np.float32)),
+            "OM": mi.Float(padded(tab.omega_row / (np.pi * self.k), np.float32)),
         }
         if self.c == 1:
-            d["R"] = mi.Float(rho.mean(axis=1))
+            d["R"] = mi.Float(padded(rho.mean(axis=1)))
         else:
-            d["R"] = mi.Color3f(rho[:, 0], rho[:, 1], rho[:, 2])
+            d["R"] = mi.Color3f(*(padded(rho[:, i]) for i in range(3)))
         for v in d.values():
             dr.make_opaque(v)
         d["mix"] = dr.opaque(mi.UInt32, _seed_mix(self.seed))
@@ -530,11 +531,11 @@ class DirectModel:
                    + np.uint64(_seed_mix(self.seed) ^ (0x5BD1E995 * salt & 0xFFFFFFFF)))
             h1 = _hash_u32(key).astype(np.uint32)
             h2 = _hash_u32(key + np.uint64(0x632BE59B)).astype(np.uint32)
-            row = mi.UInt32((ta // w_env).astype(np.uint32))
-            col = mi.Float((ta % w_env).astype(np.float32))
-            base = mi.UInt32((pa * n_sub + first[a:b]).astype(np.uint32))
-            sub0 = mi.UInt32(first[a:b].astype(np.uint32))
-            H1, H2 = mi.UInt32(h1), mi.UInt32(h2)
+            row = mi.UInt32(padded(ta // w_env, np.uint32))  # objcam.dr_memory
+            col = mi.Float(padded(ta % w_env, np.float32))
+            base = mi.UInt32(padded(pa * n_sub + first[a:b], np.uint32))
+            sub0 = mi.UInt32(padded(first[a:b], np.uint32))
+            H1, H2 = mi.UInt32(padded(h1)), mi.UInt32(padded(h2))
             ct = dr.gather(mi.Float, d["CT"], row)
             dc = dr.gather(mi.Float, d["CB"], row) - ct
             om = dr.gather(mi.Float, d["OM"], row) * scale
