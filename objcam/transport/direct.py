@@ -312,9 +312,9 @@ class DirectModel:
         if not self.cull:  # brute force: trace every pair, plain estimator
             return zero, analytic, above
         rows = self.tab.rows[texels]
-        # one row after another: threads here (numpy releases the GIL) made concurrent OpenBLAS products
-        # (nbar @ d) that segfaulted once freed memory was returned to the OS (MALLOC_TRIM_THRESHOLD_, as Dask
-        # workers set it); the row products are small
+        # one row after another (the row products are small). A threaded version was blamed for the segfaults
+        # seen with MALLOC_TRIM_THRESHOLD_; those were Dr.Jit's and Embree's reads past numpy arrays
+        # (objcam.dr_memory), and OpenBLAS's products read nothing past their operands (checked with guard pages)
         for r in np.unique(rows):
             sel = np.nonzero(rows == r)[0]
             if sel[-1] - sel[0] + 1 == sel.size:  # contiguous: slice, no fancy-index copies
