@@ -220,9 +220,15 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     if split:
         weights.append(solvers.absolute_weights(G_ref, ls * params.chroma_ls_factor, lr)[0])
 
+    merged = basis is not None and refine_info is None
+    if merged:  # once for both solves (each merged its own copy: 2 x 2.1 GB at 128 x 256)
+        grams = [merge_gram(basis, G) for G in grams]
+        rhs = [np.asarray(basis.T @ B) for B in rhs]
+    del grams_all, G_ref, G
+
     def one(w: float):
         return solve_edges(grams, rhs, chans, yy, D, w, lr_abs, steps=params.edge_steps, eps_rel=eps,
-                           tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=basis)
+                           tone=params.edge_tone, tone_floor=params.edge_tone_floor, basis=basis, merged=merged)
 
     runs = parallel_map(one, weights)  # independent solves: a thread each (the caller holds one BLAS thread)
     res = runs[0]
