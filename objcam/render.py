@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from objcam.camera import Camera
+from objcam.dr_memory import padded
 
 # Lanes (camera samples) per kernel launch: bounds the memory of one wavefront (~0.3 GB at 2**20 lanes).
 MAX_LANES = 1 << 20
@@ -79,8 +80,8 @@ def trace_rays(scene, origins: np.ndarray, directions: np.ndarray, spp: int, max
     n = len(o)
     if n == 0:
         return np.zeros((0, 3), dtype=np.float32)
-    oo = mi.Point3f(*(mi.Float(o[:, i]) for i in range(3)))
-    dd = mi.Vector3f(*(mi.Float(d[:, i]) for i in range(3)))
+    oo = mi.Point3f(*(mi.Float(padded(o[:, i])) for i in range(3)))  # objcam.dr_memory
+    dd = mi.Vector3f(*(mi.Float(padded(d[:, i])) for i in range(3)))
 
     def make_ray(index, sampler):
         sampler.next_2d()  # the same sample dimensions as render_rays
@@ -112,7 +113,7 @@ def render_rays(scene, u: np.ndarray, v: np.ndarray, camera: Camera, spp: int, m
     ctr = mi.Point3f(*(dr.opaque(mi.Float, float(m[i, 3])) for i in range(3)))
     fx, fy = dr.opaque(mi.Float, camera.fx), dr.opaque(mi.Float, camera.fy)
     cx, cy = dr.opaque(mi.Float, camera.cx), dr.opaque(mi.Float, camera.cy)
-    uu, vv = mi.Float(u), mi.Float(v)
+    uu, vv = mi.Float(padded(u)), mi.Float(padded(v))
 
     def make_ray(index, sampler):
         pu, pv = dr.gather(mi.Float, uu, index), dr.gather(mi.Float, vv, index)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from objcam.dr_memory import padded
 from objcam.errors import InputError
 
 MITSUBA_VARIANT_PREFERENCE = ("llvm_ad_rgb", "scalar_rgb")
@@ -189,10 +190,10 @@ def mitsuba_mesh(mi, name: str, mesh: MeshData, bsdf):
     m = mi.Mesh(name, vertex_count=len(mesh.vertices), face_count=len(mesh.faces),
                 has_vertex_normals=False, has_vertex_texcoords=mesh.uv is not None, props=props)
     p = mi.traverse(m)
-    p["vertex_positions"] = mi.Float(np.ascontiguousarray(mesh.vertices, dtype=np.float32).ravel())
-    p["faces"] = mi.UInt32(np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel())
+    p["vertex_positions"] = mi.Float(padded(mesh.vertices, np.float32).ravel())  # objcam.dr_memory
+    p["faces"] = mi.UInt32(padded(mesh.faces, np.uint32).ravel())
     if mesh.uv is not None:
-        p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(mesh.uv, dtype=np.float32).ravel())
+        p["vertex_texcoords"] = mi.Float(padded(mesh.uv, np.float32).ravel())
     p.update()
     return m
 

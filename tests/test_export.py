@@ -289,3 +289,93 @@ def test_baked_meshes_cover_objcams_surfaces(exported_unknown):
     obj = MeshData.load_npz(cap / "objcam" / "scene" / "object.npz")
     tm = trimesh.load(out / "meshes" / "object.obj", process=False, force="mesh")
     assert np.allclose(tm.vertices[tm.faces], obj.vertices[obj.faces.astype(np.int64)], atol=1e-6)
+
+
+def _plane_view(eye: tuple[float, float, float], gain: float, size: int = 32, fx: float = 40.0):
+    """An AlbedoView of the support z = 0 (|x|, |y| <= 0.2) seen straight down from ``eye``: each pooled pixel
+    holds the true albedo (0.3, and 0.8 where x > 0.15) at its centre's ray, times ``gain`` (a camera's own
+    estimate), estimated where the ray meets the support."""
+    from objcam.export.bake import AlbedoView
+
+    eye = np.asarray(eye, float)
+    cam = Camera(width=size, height=size, fx=fx, fy=fx, cx=(size - 1) / 2, cy=(size - 1) / 2,
+                 world_from_camera=look_at(eye, eye * [1, 1, 0]).tolist())
+    rows, cols = np.mgrid[0:size, 0:size].astype(np.float64)
+    o, d = cam.rays(cols, rows)
+    hit = o + d * (-o[..., 2:] / d[..., 2:])
+    truth = np.where(hit[..., 0] > 0.15, 0.8, 0.3)
+    est = (np.abs(hit[..., 0]) <= 0.2) & (np.abs(hit[..., 1]) <= 0.2)
+    return AlbedoView(cam, np.repeat((truth * gain)[..., None], 3, axis=2), est)
+
+
+def test_bake_takes_the_camera_that_sees_each_texel_finest():
+    """Two cameras look straight down at the support: camera 1 from 0.6 m (15 mm pooled pixels) frames
+    x in [-0.2, 0.14], camera 2 from 0.2 m (5 mm) frames x in [0.02, 0.18], where a patch (x > 0.15) that only
+    camera 2 sees has another albedo. Each camera's estimate carries its own gain (0.9 and 1), so the baked texture
+    says which camera each texel came from: camera 2's where both see (it sees finer), camera 1's where only it sees,
+    and the patch from camera 2. (A bake taking the coarser, the first or the last camera gives 0.27 in the overlap
+    in one order of the views.)"""
+    from objcam.export.bake import bake_albedo
+    from objcam.scene import MeshData
+
+    support = MeshData(np.array([[-0.2, -0.2, 0], [0.2, -0.2, 0], [0.2, 0.2, 0], [-0.2, 0.2, 0]], np.float32),
+                       np.array([[0, 1, 2], [0, 2, 3]], np.uint32))
+    views = [_plane_view((-0.1, 0.0, 0.6), 0.9), _plane_view((0.1, 0.0, 0.2), 1.0)]
+    baked = bake_albedo(support, [], views)
+    # in either order (a bake where the first or the last camera wins fails one of them)
+    assert np.array_equal(bake_albedo(support, [], views[::-1]).texture, baked.texture)
+    tex, v, uv = baked.texture, baked.mesh.vertices, baked.mesh.uv
+    # planar UVs: the centre quad of the 3 x 3 grid (vertices 5 and 10 its corners) spans the texture
+    (x0, y0), (x1, y1) = v[5, :2], v[10, :2]
+    assert np.allclose(uv[[5, 10]], [[0, 1], [1, 0]])
+    rows, cols = tex.shape[:2]
+
+    def texels(xa: float, xb: float, ya: float, yb: float) -> np.ndarray:
+        ca, cb = (int((x - x0) / (x1 - x0) * cols) for x in (xa, xb))
+        ra, rb = (int((y1 - y) / (y1 - y0) * rows) for y in (yb, ya))
+        return tex[ra:rb, ca:cb, 0]
+
+    overlap, only1, patch = texels(0.04, 0.12, -0.06, 0.06), texels(-0.18, -0.02, -0.15, 0.15), \
+        texels(0.16, 0.175, -0.06, 0.06)
+    assert overlap.size > 100 and only1.size > 100 and patch.size > 100
+    np.testing.assert_allclose(overlap, 0.3, atol=1e-6)  # camera 2 (camera 1 would give 0.27)
+    np.testing.assert_allclose(only1, 0.27, atol=1e-6)  # camera 1
+    np.testing.assert_allclose(patch, 0.8, atol=1e-6)  # only camera 2 sees it
+    assert baked.record["texels_per_pixel"] == pytest.approx(16.0, rel=0.01)
+
+
+def test_bounce_scale_rule(tmp_path):
+    """objcam.export.scale on a 4 x 4 pooled image: k = the transport's mean bounce albedo under the estimated
+    support pixels over the solve's mean albedo there (0.586 / 0.15), and 1 when the scale is pinned, when A
+    has no interreflection parts, or when no estimated pixel lies over a support cell."""
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from objcam.export.scale import bounce_scale
+    from objcam.image_io import write_exr
+
+    node = np.full(16, -1)
+    node[8:] = [0, 0, 1, 1, 2, 2, 3, 3]  # the lower half over four support cells, the upper half the object
+    np.savez(tmp_path / "bounce.npz", node_rho=np.array([[0.5] * 3, [0.7] * 3, [0.5] * 3, [0.7] * 3], np.float32),
+             pixel_node=node)
+    alb = np.full((4, 4, 3), 0.15, np.float32)
+    alb[:2] = 0.9  # the object's albedo takes no part
+    alb[3, 3] = 5.0  # left out by the mask
+    mask = np.full((4, 4), 255, np.uint8)
+    mask[3, 3] = 0
+    write_exr(tmp_path / "albedo.exr", alb)
+    Image.fromarray(mask).save(tmp_path / "albedo_mask.png")
+    tr = SimpleNamespace(has_bounce_parts=True, folder=tmp_path, pixel_index=np.arange(16), image_shape=(4, 4),
+                         unknown_albedo=np.ones(16, bool))
+    solve = {"albedo": "unknown", "scale_ambiguous": True}
+    (tmp_path / "solve.json").write_text(json.dumps(solve))
+    b = bounce_scale(tr, tmp_path)
+    # the seven estimated pixels over cells 0, 0, 1, 1, 2, 2, 3
+    assert b.k == pytest.approx(np.mean([0.5, 0.5, 0.7, 0.7, 0.5, 0.5, 0.7]) / 0.15, rel=1e-6), b.record
+    assert b.record["pixels"] == 7
+    direct = SimpleNamespace(**{**vars(tr), "has_bounce_parts": False})
+    known = SimpleNamespace(**{**vars(tr), "unknown_albedo": np.zeros(16, bool)})
+    for change, tr2 in (({"scale_ambiguous": False}, tr), ({}, direct), ({}, known)):
+        (tmp_path / "solve.json").write_text(json.dumps({**solve, **change}))
+        assert bounce_scale(tr2, tmp_path).k == 1.0, change

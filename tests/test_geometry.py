@@ -51,6 +51,73 @@ def test_plane_matches_world_frame(geometry_run):
     assert m["plane_deviation_mm"] < 0.25
     assert 0.1 < m["plane"]["rms_mm"] < 0.25
     assert m["support_flat"] and m["board_corners"] >= 12
+    # broken frames miss these bounds: test_a_broken_world_frame_fails_the_plane_bounds
+
+
+def _plane_check(photo_capture, sfm, tmp_path, **params) -> dict:
+    """The stage's plane checks (its plane fit to the sparse points and triangulated board corners, and the
+    deviation over the carving volume) on the sfm folder ``sfm``, without the rest of the stage."""
+    from objcam.geometry.views import load_views
+    from objcam.schemas.capture import CaptureManifest
+    from objcam.stages import geometry
+
+    prm = geometry.Params(**params)
+    manifest = CaptureManifest.load(photo_capture.capture)
+    inputs = StageInputs(capture=photo_capture.capture, out=tmp_path, quiet=True,
+                         upstream={"ingest": photo_capture.ingest, "sfm": sfm})
+    plane, corners = geometry._plane(inputs, manifest, load_views(photo_capture.ingest, sfm), prm)
+    _, hi = geometry._volume(manifest, prm)
+    return {"plane_deviation_mm": plane.deviation_mm(float(np.linalg.norm(hi[:2]))), "plane": plane.model_dump(),
+            "support_flat": plane.rms_mm <= prm.flat_rms_mm, "board_corners": corners}
+
+
+def _plane_ok(m: dict) -> bool:
+    """test_plane_matches_world_frame's bounds."""
+    return bool(m["plane_deviation_mm"] < 0.25 and 0.1 < m["plane"]["rms_mm"] < 0.25 and m["support_flat"]
+                and m["board_corners"] >= 12)
+
+
+# broken world frames and plane fits: what a board alignment off by a fifth of a degree, a frame half a
+# millimetre high (a board thickness), or an inlier threshold that takes the object's lowest points would give
+BROKEN_PLANE = {"frame tilted 0.2 degrees": ("tilt", 0.2), "frame raised 0.5 mm": ("raise", 0.5e-3),
+                "inlier threshold 20 mm": ("threshold", 20.0)}
+
+
+@pytest.mark.parametrize("broken", list(BROKEN_PLANE))
+def test_a_broken_world_frame_fails_the_plane_bounds(geometry_run, photo_capture, tmp_path, broken):
+    """A test of the test (tests/broken.py): the plane checks above, rerun on the same views with the world frame
+    moved (every SfM camera and point) or the plane fit loosened, miss the bounds (measured deviation / RMS:
+    tilted 0.46 / 0.15 mm, raised 0.50 / 0.15 mm, loose threshold 0.04 / 1.08 mm; bounds 0.25 and 0.1 .. 0.25 mm).
+    The stage's own metrics (test_plane_matches_world_frame) pass the same helper's bounds, so the helper is the
+    stage's check."""
+    from scipy.spatial.transform import Rotation
+
+    from objcam.camera import Camera
+
+    _, m = geometry_run
+    kind, amount = BROKEN_PLANE[broken]
+    assert _plane_ok(m)
+    sfm, params = photo_capture.sfm, {}
+    if kind == "threshold":
+        params = {"plane_threshold_mm": amount}
+    else:
+        T = np.eye(4)
+        if kind == "tilt":
+            T[:3, :3] = Rotation.from_euler("x", amount, degrees=True).as_matrix()
+        else:
+            T[2, 3] = amount
+        sfm = tmp_path / "sfm"
+        shutil.copytree(photo_capture.sfm, sfm)
+        for p in (sfm / "cameras" / "views").glob("*.json"):
+            cam = Camera.load(p)
+            cam.model_copy(update={"world_from_camera": (T @ np.asarray(cam.world_from_camera)).tolist()}).save(p)
+        with np.load(sfm / "points.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["xyz"] = arrays["xyz"] @ T[:3, :3].T + T[:3, 3]
+        np.savez(sfm / "points.npz", **arrays)
+    bad = _plane_check(photo_capture, sfm, tmp_path / "out", **params)
+    print(broken, bad["plane_deviation_mm"], bad["plane"]["rms_mm"], bad["board_corners"])
+    assert not _plane_ok(bad), bad
 
 
 def _registration_error(world_from_model: np.ndarray, photo_capture) -> np.ndarray:
@@ -272,7 +339,40 @@ def test_chamfer_of_offset_sphere():
     a = MeshData((v * 0.05).astype(np.float32), f.astype(np.uint32))
     b = MeshData((v * 0.051).astype(np.float32), f.astype(np.uint32))
     # nearest-sample distances overestimate by about spacing^2 / (2 d): measured 1.06 mm for a 1 mm offset
-    assert chamfer(a, b, 20000).mean == pytest.approx(0.00105, rel=0.03)
+    assert _chamfer_ok(chamfer(a, b, 20000).mean)
+
+
+def _chamfer_ok(mean_m: float) -> bool:
+    """test_chamfer_of_offset_sphere's bound: 1.05 mm within 3%."""
+    return mean_m == pytest.approx(0.00105, rel=0.03)
+
+
+# broken measurements of the 1 mm offset: the outer sphere 10% further out, the same sphere moved 1 mm instead of
+# grown (a mean distance near 0.5 mm, not 1), and too few samples (the nearest-sample overestimate grows)
+BROKEN_CHAMFER = {"offset 1.1 mm": ("radius", 0.0511), "moved 1 mm, not grown": ("moved", 1e-3),
+                  "1,000 samples": ("samples", 1000)}
+
+
+@pytest.mark.parametrize("broken", list(BROKEN_CHAMFER))
+def test_a_broken_chamfer_fails_the_bound(broken):
+    """A test of the test (tests/broken.py): each broken measurement misses the 3% bound above (measured 1.15,
+    0.63 and 1.80 mm against 1.05)."""
+    from objcam.geometry.chamfer import chamfer
+    from objcam.synth.assets import icosphere
+
+    v, f = icosphere(4)
+    kind, amount = BROKEN_CHAMFER[broken]
+    a = MeshData((v * 0.05).astype(np.float32), f.astype(np.uint32))
+    b, n = MeshData((v * 0.051).astype(np.float32), f.astype(np.uint32)), 20000
+    if kind == "radius":
+        b = MeshData((v * amount).astype(np.float32), f.astype(np.uint32))
+    elif kind == "moved":
+        b = MeshData((v * 0.05 + [amount, 0, 0]).astype(np.float32), f.astype(np.uint32))
+    else:
+        n = int(amount)
+    got = chamfer(a, b, n).mean
+    print(broken, got * 1e3)
+    assert not _chamfer_ok(got), got
 
 
 # ------------------------------------------------------------------------------------------------ bad input

@@ -153,11 +153,18 @@ SETS = ["transport.env_height=8", "transport.model=auto", "transport.auto_noise=
         "transport.object_subpixel_samples=16", "solve.prior=smooth"]
 
 
-def test_a_batch_on_a_cluster_completes_past_a_failing_capture(client, tmp_path, capsys):
-    """objcam run C1 BAD C2 --cluster tcp://...: C1 and C2 solved, exit status 1, one summary table; C1's envmap
-    equals its in-process twin's."""
+def test_a_batch_on_a_cluster_completes_past_a_failing_capture(client, tmp_path, capsys, monkeypatch):
+    """objcam run C1 BAD C2 --cluster tcp://...: two captures at a time, each in its own process (C1 and BAD start
+    together, C2 when BAD fails), C1 and C2 running at the same time on the cluster; C1 and C2 solved, exit status
+    1, one summary table; C1's envmap equals its in-process twin's."""
     from objcam.image_io import read_exr
+    from objcam.pipeline import batch
     from objcam.pipeline.cli import main
+
+    monkeypatch.setattr("objcam.threads.cores", lambda: 2)  # two captures at a time on any machine
+    summary = []
+    show = batch._print_summary
+    monkeypatch.setattr(batch, "_print_summary", lambda results, note: (summary.extend(results), show(results, note)))
 
     c1, c2, bad = tmp_path / "c1", tmp_path / "c2", tmp_path / "bad"
     _tiny_capture(c1, "courtyard")
@@ -173,7 +180,13 @@ def test_a_batch_on_a_cluster_completes_past_a_failing_capture(client, tmp_path,
                client.scheduler_info()["address"], *sets])
     out = capsys.readouterr()
     assert rc == 1
-    assert "3 captures, 1 failed" in out.out and "capture.toml" in out.err and "Traceback" not in out.err
+    title = " ".join(out.out.split())  # the table's title may wrap
+    assert "3 captures, 1 failed" in title and "2 captures at a time" in title
+    assert "capture.toml" in out.err and "Traceback" not in out.err
+    r1, rbad, r2 = summary
+    assert [r.status for r in summary] == ["done", "failed", "done"] and "capture.toml" in rbad.note
+    assert r2.started < r1.started + r1.seconds  # C2 began before C1 ended: the captures interleave
+    assert f"objcam: {c1}" in out.out and f"objcam: {c2}" in out.out  # each capture's own table, printed whole
     for c in (c1, c2):
         rec = json.loads((c / "objcam" / "transport" / "stage.json").read_text())
         assert rec["metrics"]["engine"] == "dask" and rec["metrics"]["model"] == "direct+indirect"

@@ -62,8 +62,10 @@ def pooled_camera(cam: Camera, f: int) -> Camera:
                   cy=(cam.cy - h) / f, world_from_camera=cam.world_from_camera)
 
 
-def albedo_views(solve_dir: Path, targets: list, downsample: dict[str, int]) -> list[AlbedoView]:
-    """An AlbedoView per target of ``targets`` (scene targets) with an ``albedo.exr`` in ``solve_dir/<name>``."""
+def albedo_views(solve_dir: Path, targets: list, downsample: dict[str, int],
+                 scales: dict[str, float] | None = None) -> list[AlbedoView]:
+    """An AlbedoView per target of ``targets`` (scene targets) with an ``albedo.exr`` in ``solve_dir/<name>``, its
+    albedo times ``scales[name]`` (objcam.export.scale; 1 when absent)."""
     from PIL import Image
 
     from objcam.image_io import read_exr
@@ -74,6 +76,7 @@ def albedo_views(solve_dir: Path, targets: list, downsample: dict[str, int]) -> 
         if not (d / "albedo.exr").is_file() or not (d / "albedo_mask.png").is_file():
             continue
         alb = np.clip(read_exr(d / "albedo.exr")[..., :3].astype(np.float64), 0.0, None)
+        alb = alb * (scales or {}).get(t.name, 1.0)
         mask = np.asarray(Image.open(d / "albedo_mask.png"))
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
         cam = pooled_camera(t.camera, downsample[t.name])

@@ -2,7 +2,8 @@
 camera and the recovered envmap, whose render reproduces the solve's prediction image A x.
 
 - Envmap: ``<target>_mitsuba.exr``, the box bitmap of the standard-convention envmap (objcam.export.envmaps),
-  with ``to_world`` = local x -> world +y, y -> +z, z -> +x (data_layout.md).
+  with ``to_world`` = local x -> world +y, y -> +z, z -> +x (data_layout.md); id ``envmap`` (its data is
+  ``envmap.data`` in ``mi.traverse``).
 - Camera: ``perspective`` with ``to_world`` = world_from_camera @ diag(-1, -1, 1, 1) (OpenCV's x right, y down
   -> Mitsuba's x left, y up), the horizontal field of view from fx, and the principal point as Mitsuba's offset
   (a fraction of the film from its centre, opposite in sign to the pixel shift; OpenCV's centre (W - 1) / 2 is
@@ -85,7 +86,7 @@ def write_scene_xml(path: Path, cam: Camera, target: str, envmap_file: str,
              f'    <default name="max_depth" value="{int(max_depth)}"/>',
              '    <integrator type="path"><integer name="max_depth" value="$max_depth"/></integrator>',
              sensor_xml(cam, target),
-             '    <emitter type="envmap">',
+             '    <emitter type="envmap" id="envmap">',
              f'        <string name="filename" value={quoteattr(envmap_file)}/>',
              f'        <transform name="to_world"><matrix value="{_matrix(MITSUBA_TO_WORLD)}"/></transform>',
              '    </emitter>']

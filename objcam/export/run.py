@@ -95,6 +95,7 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
     from objcam.export.envmaps import write_envmap
     from objcam.export.meshes import ExportMesh, write_mesh_files
     from objcam.export.mitsuba_xml import write_scene_xml
+    from objcam.export.scale import bounce_scale
     from objcam.image_io import atomic_write_bytes, atomic_write_text, read_exr, write_exr, write_tonemapped_png
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.scene import MeshData
@@ -113,18 +114,22 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
                     "u = 0.5 - atan2(y, x) / (2 pi), row 0 the zenith", "world": "metres, z up", "targets": {},
                     "meshes": {}, "warnings": []}
     # surfaces: an unknown albedo is baked from the solve's per-pixel estimate (objcam.export.bake)
-    downsample = {t.name: int(load_transport(work / "transport", t.name, load_A=False).downsample)
-                  for t in scene.targets}
+    transports = {t.name: load_transport(work / "transport", t.name, load_A=False) for t in scene.targets}
+    downsample = {name: int(tr.downsample) for name, tr in transports.items()}
+    # a scale-ambiguous solve's albedo at the scale its A's interreflections assumed (objcam.export.scale)
+    scales = {t.name: bounce_scale(transports[t.name], work / "solve" / t.name) for t in scene.targets}
     meshes = {"object": MeshData.load_npz(scene.folder / scene.description.object_mesh),
               "support": MeshData.load_npz(scene.folder / scene.description.support_mesh)}
-    views, unbaked, shapes = None, False, []
+    views, unbaked, baked_any, shapes = None, False, False, []
     for name, value in (("object", scene.description.albedo_object), ("support", scene.description.albedo_support)):
         mesh, baked = meshes[name], None
         if not value.known:
-            views = albedo_views(work / "solve", scene.targets, downsample) if views is None else views
+            views = (albedo_views(work / "solve", scene.targets, downsample, {n: b.k for n, b in scales.items()})
+                     if views is None else views)
             baked = bake_albedo(mesh, [m for k, m in meshes.items() if k != name], views) if views else None
         if baked is not None:
             mesh, rgb, tex, source = baked.mesh, None, baked.texture, "baked from the solve's per-pixel albedo"
+            baked_any = True
         else:
             rgb, tex, source = _albedo(value, scene.folder)
             unbaked = unbaked or not value.known
@@ -153,14 +158,17 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
         sdir = work / "solve" / t.name
         if not (sdir / "envmap.exr").is_file():
             raise ObjcamError(f"no envmap for target {t.name}", sdir / "envmap.exr", "rerun `objcam run CAPTURE`")
-        env = read_exr(sdir / "envmap.exr")[..., :3]  # already the standard file convention
+        # already the standard file convention; divided by the factor the baked albedo was multiplied by
+        env = read_exr(sdir / "envmap.exr")[..., :3]
+        if baked_any and scales[t.name].k != 1.0:
+            env = (env / np.float32(scales[t.name].k)).astype(np.float32)
         files += write_envmap(out / "envmaps", t.name, env, opts.upsample)
         img = t.load_image(scene.folder)
         write_exr(out / "images" / f"{t.name}.exr", img)
         write_tonemapped_png(out / "images" / f"{t.name}.png", img)
         files += [out / "images" / f"{t.name}.exr", out / "images" / f"{t.name}.png"]
         cameras[t.name], image_names[t.name] = t.camera, f"images/{t.name}.png"
-        tr = load_transport(work / "transport", t.name, load_A=False)
+        tr = transports[t.name]
         depth = 2 if tr.model == "direct" else int(tr.max_depth or 6)
         xml = write_scene_xml(out / "mitsuba" / f"{t.name}.xml", t.camera, t.name,
                               f"../envmaps/{t.name}_mitsuba.exr", shapes, depth, opts.spp)
@@ -170,12 +178,15 @@ def export_capture(work: Path, out: Path, opts: ExportOptions | None = None) -> 
                                      "mitsuba": f"mitsuba/{t.name}.xml", "max_depth": depth,
                                      "transport_model": tr.model, "downsample": int(tr.downsample),
                                      "prediction": str(sdir / "prediction.exr")}
+        if baked_any:
+            record["targets"][t.name].update(scales[t.name].record)
         sinfo = _json(sdir / "solve.json")
         if unbaked and sinfo.get("albedo") == "unknown" and sinfo.get("scale_ambiguous"):
             # envmap and albedo are known only up to one scale per channel, and the exported albedo (the texture
             # stage's estimate) is not the solve's: choose that scale so the exported scene renders the prediction
             s = _fit_scale(xml, sdir / "prediction.exr", int(tr.downsample))
             files += write_envmap(out / "envmaps", t.name, env * s, opts.upsample)
+            s = s / scales[t.name].k if baked_any else s  # relative to the solve's envmap
             record["targets"][t.name]["envmap_scale"] = s.tolist()
             record["warnings"].append(f"{t.name}: envmap and albedo known only up to scale (no pixel of known "
                                       f"albedo): the exported envmap is the solve's x {np.round(s, 4).tolist()}, "

@@ -24,6 +24,11 @@ class PlaneFit(BaseModel):
     offset_mm: float  # signed height of the fitted plane above the origin
     z_rms_mm: float  # RMS of the inliers' z (their distance to the world plane z = 0)
 
+    def deviation_mm(self, radius_m: float) -> float:
+        """How far (mm) the fitted plane strays from the world's z = 0 anywhere within ``radius_m`` of the origin
+        (its offset plus what its tilt adds at that radius): the check on the world frame."""
+        return abs(self.offset_mm) + float(np.tan(np.radians(self.tilt_deg)) * radius_m * 1e3)
+
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distances (N,) metres of points (N, 3) to the plane (positive on the normal's side)."""
         return np.asarray(points, float) @ np.asarray(self.normal) - self.d

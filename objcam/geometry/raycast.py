@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from objcam.dr_memory import padded
 from objcam.scene import MeshData
 
 
@@ -28,10 +29,10 @@ class RayScene:
         o = np.ascontiguousarray(np.reshape(origins, (-1, 3)), dtype=np.float32)
         dd = np.asarray(np.reshape(directions, (-1, 3)), dtype=np.float64)
         dd = np.ascontiguousarray(dd / np.linalg.norm(dd, axis=1, keepdims=True), dtype=np.float32)
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i]) for i in range(3))),
-                       mi.Vector3f(*(mi.Float(dd[:, i]) for i in range(3))))
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(padded(o[:, i])) for i in range(3))),  # objcam.dr_memory
+                       mi.Vector3f(*(mi.Float(padded(dd[:, i])) for i in range(3))))
         if maxt is not None:
-            ray.maxt = mi.Float(np.ascontiguousarray(np.broadcast_to(maxt, (len(o),)), dtype=np.float32))
+            ray.maxt = mi.Float(padded(np.broadcast_to(maxt, (len(o),)), np.float32))
         return ray
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, maxt: np.ndarray | float | None = None,

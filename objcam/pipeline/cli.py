@@ -103,6 +103,11 @@ def _print_reports(console, reports, title: str) -> None:
     console.print(t)
 
 
+def _run_until(args) -> int:
+    """``objcam run`` of one capture (module-level: a batch sends it to the captures' processes)."""
+    return _run(args, until=args.until)
+
+
 def _run(args, only: list[str] | None = None, until: str | None = None) -> int:
     from objcam.pipeline.engine import Pipeline, parse_overrides
 
@@ -190,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "run" and (args.more or args.cluster):
             from objcam.pipeline.batch import run_batch  # several captures, or a Dask cluster
 
-            return run_batch(args, lambda a: _run(a, until=a.until))
+            return run_batch(args, _run_until)
         if args.command == "run":
             return _run(args, until=args.until)
         if args.command == "status":

@@ -67,6 +67,15 @@ def _stage_lead(up: dict[str, Path], stage: str, keys: tuple[str, ...] = ()) -> 
     return "".join(parts)
 
 
+def _white(png: bytes | None) -> str:
+    """A mask's share of white pixels for its caption (", 99.8% of the image"): an all-white mask shows as a blank
+    panel, and the number says that it is one."""
+    import cv2
+
+    img = None if png is None else cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+    return "" if img is None or img.size == 0 else f", {np.mean(img > 127):.1%} of the image"
+
+
 def _ingest(up: dict[str, Path], width: int, capture: Path | None = None) -> str:
     d = up["ingest"]
     parts = [_stage_lead(up, "ingest", ("views", "targets", "probes", "photos", "white_balance_source", "units"))]
@@ -80,8 +89,9 @@ def _ingest(up: dict[str, Path], width: int, capture: Path | None = None) -> str
                          j.get("saturated_fraction"), j.get("reader")))
             figs.append(H.figure(_fit(_exr_png(m.parent / "image.exr")), f"{kind[:-1]} {m.parent.name}: merged HDR "
                                  "(99th percentile, gamma 1/2.2)"))
-            figs.append(H.figure(_fit(H.read_png(m.parent / "valid.png")), f"{kind[:-1]} {m.parent.name}: usable "
-                                 "pixels (white; black: saturated in every frame or outside the merge's range)"))
+            valid = H.read_png(m.parent / "valid.png")
+            figs.append(H.figure(_fit(valid), f"{kind[:-1]} {m.parent.name}: usable pixels (white{_white(valid)}; "
+                                 "black: saturated in every frame or outside the merge's range)"))
     if rows:
         parts.append(H.table(("bracket", "frames", "exposure times", "saturated in every frame", "reader"), rows))
     parts.append(H.grid(figs))

@@ -24,7 +24,8 @@ code { font-family: ui-monospace, Menlo, Consolas, monospace; font-size: .92em; 
 .grid { display: grid; grid-template-columns: repeat(auto-fill, minmax(320px, 1fr)); gap: 1rem; }
 .grid.wide { grid-template-columns: repeat(auto-fill, minmax(520px, 1fr)); }
 figure { margin: 0; padding: .5rem; border: 1px solid #e3e3e3; border-radius: 6px; background: #fafafa; }
-figure img { display: block; width: 100%; height: auto; image-rendering: pixelated; background: #222; }
+figure img { display: block; width: 100%; height: auto; image-rendering: pixelated; background: #222;
+             outline: 1px solid #ccc; }
 figure img.plot { image-rendering: auto; background: #fff; }
 figcaption { font-size: .85rem; color: #444; margin-top: .35rem; }
 .note { background: #fff8e1; border-left: 4px solid #f0b400; padding: .4rem .7rem; font-size: .9rem; }

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from objcam.dr_memory import padded
 from objcam.errors import StageError
 
 
@@ -235,7 +236,7 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
             env[tr.texel_index] = x[l]
             env = env.reshape(grid.height, grid.width, 3)
             bitmap = np.einsum("rh,hwc->rwc", wrow, env[:, cols])
-            tensor = mi.TensorXf(bitmap.astype(np.float32))
+            tensor = mi.TensorXf(padded(bitmap, np.float32))  # objcam.dr_memory
             dr.enable_grad(tensor)
             params[key] = tensor
             params.update()
@@ -251,7 +252,7 @@ def _solve_camera(scene, data, names, st: AdamSettings) -> dict[str, AdamTargetR
             adj = np.zeros((hp * wp, 3))
             adj[pix] = 2 * r * rho_r / (f * f)
             adj = np.repeat(np.repeat(adj.reshape(hp, wp, 3), f, axis=0), f, axis=1)
-            dr.backward(dr.sum(img * mi.TensorXf(adj.astype(np.float32)), axis=None))
+            dr.backward(dr.sum(img * mi.TensorXf(padded(adj, np.float32)), axis=None))
             gb = np.asarray(dr.grad(tensor), dtype=np.float64)  # (f H + 1, 2 f H + 2, 3)
             g_env = np.zeros((grid.height, grid.width, 3))
             gcol = np.zeros((gb.shape[0], grid.width, 3))

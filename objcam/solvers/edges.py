@@ -94,7 +94,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 yy: np.ndarray, D: sp.csr_matrix, ls_abs: float, lr_abs: float, steps: int = 6,
                 eps_rel: float = 0.05, tol: float = 1e-4,
                 solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
-                tone_floor: float = 0.05, basis: sp.spmatrix | None = None,
+                tone_floor: float = 0.05, basis: sp.spmatrix | None = None, merged: bool = False,
                 start: EdgeResult | None = None, warm: EdgeResult | None = None) -> EdgeResult:
     """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
@@ -105,7 +105,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     basis: optional (N, N') 0/1 matrix P of texel groups (objcam.solvers.basis.texel_basis): F is minimised
     over x = P z (grams, rhs and D are given on the N texels and merged here; the edge means of the tone weights
     and the ridge are those of the fine x, so F is the same function restricted to that subspace). The returned
-    x is P z; ``results`` hold the merged problem's solves (their KKT residuals are in z).
+    x is P z; ``results`` hold the merged problem's solves (their KKT residuals are in z). ``merged``: grams and
+    rhs are already on the basis (``merge_gram(P, G)``, ``P^T B``): solves that share them merge them once.
     start: an earlier result of the same prior (same D, ls, eps_rel, tone, basis) on other data (the same photo
     with outlier pixels removed, objcam.solvers.outliers): the steps continue from its estimate, edge scale s and
     weights instead of a new quadratic solve, so the prior stays the same function F.
@@ -116,8 +117,9 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     ridge_w = np.ones(D.shape[1])  # texels per unknown: the ridge of the fine x
     if basis is not None:
         P = sp.csr_matrix(basis)
-        grams = [merge_gram(P, G) for G in grams]
-        rhs = [np.asarray(P.T @ np.asarray(B).reshape(P.shape[0], -1)) for B in rhs]
+        if not merged:
+            grams = [merge_gram(P, G) for G in grams]
+            rhs = [np.asarray(P.T @ np.asarray(B).reshape(P.shape[0], -1)) for B in rhs]
         D = sp.csr_matrix(D @ P)
         M = None if M is None else sp.csr_matrix(M @ P)
         ridge_w = group_sizes(P)
@@ -154,11 +156,12 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
         return data + float(yy.sum()) + lr_abs * float(np.einsum("n,nc,nc->", ridge_w, X, X)) + prior
 
+    Qs: list[np.ndarray | None] = [None] * len(grams)  # each block's Q, rewritten in place at every step
     for step in range(first, steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
-            Q = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w)
+            Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
             res = solve(Q, B, passive0=passive[b], coarse=coarse) if solve is solve_exact else solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0

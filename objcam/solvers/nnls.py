@@ -104,15 +104,21 @@ def kkt_residual(Q: np.ndarray, B: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 
 class _Factor:
-    """Cholesky of a symmetric block with a jitter fallback and iterative refinement."""
+    """Cholesky of a symmetric block with a jitter fallback and iterative refinement.
 
-    def __init__(self, S: np.ndarray, jitter0: float = 1e-13):
-        self.S = S
+    ``remake``: a function returning S again; given, S is factorised in place (its memory becomes the factor:
+    one |F| x |F| matrix per free block instead of two) and an attempt that fails takes a fresh S from it; the
+    refinement's residual then comes from :meth:`solve`'s ``residual``."""
+
+    def __init__(self, S: np.ndarray, jitter0: float = 1e-13, remake=None):
+        self.S = None if remake is not None else S
         self.jitter = 0.0
         # S is symmetric: hand LAPACK its transpose, a Fortran-ordered view of the same matrix (a plain copy
-        # inside the wrapper instead of a transposing one)
-        c, info = lapack.dpotrf(S.T if S.flags.c_contiguous else S, lower=0, clean=1, overwrite_a=0)
+        # inside the wrapper instead of a transposing one; none at all when it may overwrite S)
+        c, info = lapack.dpotrf(S.T if S.flags.c_contiguous else S, lower=0, clean=1,
+                                overwrite_a=int(remake is not None))
         if info != 0:
+            S = remake() if remake is not None else S
             dmax = float(np.max(np.abs(np.diag(S)))) if S.size else 1.0
             dmax = dmax if dmax > 0 else 1.0
             rel = jitter0
@@ -132,11 +138,28 @@ class _Factor:
             raise np.linalg.LinAlgError(f"dpotrs failed ({info})")
         return x
 
-    def solve(self, R: np.ndarray, refine: int = 2) -> np.ndarray:
+    def solve(self, R: np.ndarray, refine: int = 2, residual=None) -> np.ndarray:
+        """S^-1 R with ``refine`` steps of iterative refinement; ``residual(x)``: R - S x (required when S was
+        factorised in place)."""
         x = self._solve(R)
         for _ in range(refine):
-            x = x + self._solve(R - self.S @ x)
+            x = x + self._solve(R - self.S @ x if residual is None else residual(x))
         return x
+
+
+#: bytes of Q's rows gathered at a time into a free block (objcam.solvers.nnls._free_block)
+_BAND_BYTES = 64 * 2**20
+
+
+def _free_block(Q: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Q[idx][:, idx] (|F|, |F|), gathered a band of rows at a time: no |F| x N intermediate (0.7 GB per free
+    block at 128 x 256)."""
+    k = idx.size
+    S = np.empty((k, k))
+    step = max(1, _BAND_BYTES // (8 * max(Q.shape[0], 1)))
+    for r0 in range(0, k, step):
+        np.take(Q.take(idx[r0 : r0 + step], axis=0), idx, axis=1, out=S[r0 : r0 + step])
+    return S
 
 
 @dataclass
@@ -159,14 +182,22 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
         if idx.size == 0:
             G[:, group] = -B[:, group]
             continue
-        rows = Q.take(idx, axis=0)  # (|F|, N); Q symmetric, so rows.T is Q[:, idx]
-        fac = _Factor(rows.take(idx, axis=1))
+        # the block factorised in place; the refinement's residual and the gradient from products with Q
+        fac = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
         stats.factorizations += 1
         stats.max_jitter = max(stats.max_jitter, fac.jitter)
         stats.largest_block = max(stats.largest_block, idx.size)
-        xs = fac.solve(B[np.ix_(idx, group)], refine=1)
+        Bf = B[np.ix_(idx, group)]
+        full = np.zeros((Q.shape[0], len(group)))
+
+        def residual(xs: np.ndarray) -> np.ndarray:
+            full[idx] = xs
+            return Bf - (Q @ full)[idx]
+
+        xs = fac.solve(Bf, refine=1, residual=residual)
         X[np.ix_(idx, group)] = xs
-        G[:, group] = rows.T @ xs - B[:, group]
+        full[idx] = xs
+        G[:, group] = Q @ full - B[:, group]
 
 
 class _SchurFree:

@@ -176,8 +176,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         "views": len(views), "board_corners": n_corners,
         "plane": plane.model_dump(), "support_flat": plane.rms_mm <= params.flat_rms_mm,
         # how far the fitted plane strays from the world's z = 0 anywhere over the carving volume's footprint
-        "plane_deviation_mm": abs(plane.offset_mm) + float(np.tan(np.radians(plane.tilt_deg))
-                                                           * np.linalg.norm(hi[:2]) * 1e3),
+        "plane_deviation_mm": plane.deviation_mm(float(np.linalg.norm(hi[:2]))),
         "voxel_mm": voxel * 1e3, "carve_samples": field.evaluated,
         "hull_faces": int(len(hull.faces)), "hull_height_mm": float(hhi[2] - hlo[2]) * 1e3,
         "hull_volume_cm3": field.occupied_volume * 1e6, "hull_touches_volume": touches, **built.stats,

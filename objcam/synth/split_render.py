@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from objcam.camera import Camera
+from objcam.dr_memory import padded
 from objcam.render import _pass_seed, render_image
 
 # Lanes per kernel launch (~0.3 GB of wavefront state at 2**22 lanes in the llvm variant).
@@ -80,7 +81,7 @@ def render_direct_strata(scene, camera: Camera, strata: np.ndarray, seed: int = 
 
     cells = np.asarray(strata, dtype=np.float32)
     n_cells = len(cells)
-    cz0, cz1, cp0, cdp = (mi.Float(np.ascontiguousarray(cells[:, i])) for i in range(4))
+    cz0, cz1, cp0, cdp = (mi.Float(padded(cells[:, i])) for i in range(4))  # objcam.dr_memory
     n_pix = camera.width * camera.height
     chunk = max(1, min(n_cells, _LANES // n_pix))  # cells per launch; every pixel gets `chunk` lanes
     m = camera.matrix

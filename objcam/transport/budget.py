@@ -6,9 +6,12 @@ What is counted, per camera (``channels`` 1 for a grey albedo, else 3; N the tex
 
 * A as float32: pixels x N x channels x 4 bytes;
 * the Gram matrices A_c^T A_c as float64 (channels x N^2 x 8), stored beside A and read by the solve;
-* the solve's working copies: per channel and per concurrent solve (the edge prior's luminance and chroma
-  solves run side by side) the regularised Gram matrix and its merged form (objcam.solvers.basis), and the
-  free blocks' factors: ``SOLVE_COPIES`` x N^2 x 8 bytes per channel.
+* the solve's working copies, ``SOLVE_COPIES`` x N^2 x 8 bytes per channel (an upper bound: the merged basis
+  has fewer unknowns than A has texels): the merged Gram matrix (objcam.solvers.basis.merge_gram, shared by the
+  edge prior's luminance and chroma solves, which run side by side) and per concurrent solve its regularised
+  Gram matrix (rewritten in place at every reweighting step) and a factor (of the whole matrix on the Schur
+  path, objcam.solvers.nnls._SchurFree, else of a free block, factorised in place). gram.npy itself is
+  memory-mapped (its pages are the file's, counted once in the Gram term).
 
 N: with a support plane A keeps the texels above its horizon and the row below it (the sky a pixel near the
 plane's edge sees past it): ``(H/2 + 1) x 2H`` (measured: 1,088 at 32 x 64, 4,224 at 64 x 128 on the demo); without
@@ -27,8 +30,9 @@ from objcam.errors import StageError
 SECONDS_PER_PAIR = 6e-7
 GRAM_FLOPS = 2e10
 MEMORY_SHARE = 0.8  # of the machine's physical memory one build may plan to use
-# The known-albedo edge solve's working set: G, Q and the merged Q of two concurrent solves, and a factor, per
-# channel (peak RSS of the solve alone at 64 x 128, demo capture: see bench/results.md "Issue 26").
+# The known-albedo edge solve's working set: the shared merged Gram, and a Q and a factor per concurrent solve,
+# per channel. Checked against the peak at 128 x 256 (bench/results.md "128 x 256: the memory cut"): the estimate
+# 13.4 GiB with A and the Gram file, the measured peak 12.1 GiB RSS (10.0 GiB anonymous; the solve unfinished).
 SOLVE_COPIES = 5
 # The default edge solve's seconds per texel^3 (CPU; 2 x 7 exact solves of ~15 free-block factorisations each):
 # measured 23-26 s at 4,224 texels and ~1.05 s at 1,088 on the demo capture, loaded 2-core machine.

@@ -148,7 +148,8 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
         st = dm.stats
         metrics.update({"rays_traced": st.rays_traced, "rays_culled": st.rays_culled, "rays_total": st.rays_total,
                         "pairs_zero": st.pairs_zero, "pairs_analytic": st.pairs_analytic,
-                        "pairs_traced": st.pairs_traced, "pairs_refined": st.pairs_refined})
+                        "pairs_traced": st.pairs_traced, "pairs_refined": st.pairs_refined,
+                        "pairs_settled": st.pairs_settled})
     elif model == "path":
         from objcam.transport.path import PathRenderer
 

@@ -22,7 +22,10 @@ centre direction and angular radius; the pixel's samples: their normal cone and 
   elsewhere (texels crossing a normal's horizon) the round's mean per hit times the pixel's coverage.
   Pairs near a shadow boundary (a 3 x 3 image neighbourhood holding both escaping and blocked rays for that
   texel) are then re-traced with S rays, one per sub-pixel sample; so are all traced pairs of pixels whose
-  samples mix surfaces or miss (one round would misweight the mix).
+  samples mix surfaces or miss (one round would misweight the mix). Of those S rays the first P (an aligned
+  Sobol block: a stratified net, P = :func:`settle_prefix`) are traced first; a pair whose active prefix rays
+  all escape or all are blocked takes that verdict for its other rays, which then only sum their cosines (no
+  shadow test). On the demo the object's 256-ray pairs trace 40% fewer rays, A unchanged within its noise.
 
 Deterministic: every random number comes from the seed (per-pixel shifts) or a hash of (pixel, texel, seed).
 """
@@ -33,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from objcam.dr_memory import padded
 from objcam.envmap import EnvGrid
 from objcam.scene import use_mitsuba
 from objcam.transport.geometry import PixelSamples, SceneGeometry
@@ -96,6 +100,7 @@ class DirectStats:
     pairs_analytic: int = 0
     pairs_traced: int = 0
     pairs_refined: int = 0
+    pairs_settled: int = 0  # pairs traced with all S samples whose stratified prefix settled their visibility
 
     @property
     def rays_culled(self) -> int:
@@ -132,6 +137,17 @@ def _seed_mix(seed: int) -> int:
     return x
 
 
+def settle_prefix(n_sub: int) -> int:
+    """The sub-pixel samples a pair traces first when it is to trace all S = ``n_sub`` (DirectModel._trace_all):
+    the smallest power of two P >= 4 sqrt(S), at most S. A shadow boundary inside a pair's footprint that the P
+    points of a stratified net all miss covers about 1/P of it or less; P >= 4 sqrt(S) keeps that below half the
+    S-ray estimate's own standard error there (1 / (2 sqrt(S)), a visible fraction near 1/2). S = 256 (object
+    pixels): 64; S = 32 (the support's): 32, nothing settled (measured: a 16-ray prefix there raised the support's
+    column error 0.42% -> 0.44% and saved no time)."""
+    need = 4.0 * np.sqrt(max(int(n_sub), 1))
+    return int(min(int(n_sub), 1 << int(np.ceil(np.log2(need)))))
+
+
 class DirectModel:
     """Columns of the direct-light A for the pixels of ``samples`` (every pixel must have at least one hit).
 
@@ -140,7 +156,7 @@ class DirectModel:
 
     def __init__(self, geo: SceneGeometry, samples: PixelSamples, env_height: int, channels: int, rays: int = 4,
                  seed: int = 0, batch_rays: int = 1 << 24, cull: bool = True, refine: bool = True,
-                 image_shape: tuple[int, int] | None = None):
+                 image_shape: tuple[int, int] | None = None, prefix: int | None = None):
         self.geo, self.s, self.c = geo, samples, int(channels)
         self.tab = TexelTable.of(env_height)
         self.seed = int(seed)
@@ -157,6 +173,7 @@ class DirectModel:
         if self.k < 1 or self.n_sub % self.k:
             raise ValueError(f"sub-pixel samples ({self.n_sub}) must be a multiple of the rays per pair ({rays})")
         self.rounds = self.n_sub // self.k
+        self.prefix = settle_prefix(self.n_sub) if prefix is None else int(prefix)
         hit = samples.hit
         if not hit.any(axis=1).all():
             raise ValueError("DirectModel needs pixels with at least one surface hit")
@@ -295,9 +312,9 @@ class DirectModel:
         if not self.cull:  # brute force: trace every pair, plain estimator
             return zero, analytic, above
         rows = self.tab.rows[texels]
-        # one row after another: threads here (numpy releases the GIL) made concurrent OpenBLAS products
-        # (nbar @ d) that segfaulted once freed memory was returned to the OS (MALLOC_TRIM_THRESHOLD_, as Dask
-        # workers set it); the row products are small
+        # one row after another (the row products are small). A threaded version was blamed for the segfaults
+        # seen with MALLOC_TRIM_THRESHOLD_; those were Dr.Jit's and Embree's reads past numpy arrays
+        # (objcam.dr_memory), and OpenBLAS's products read nothing past their operands (checked with guard pages)
         for r in np.unique(rows):
             sel = np.nonzero(rows == r)[0]
             if sel[-1] - sel[0] + 1 == sel.size:  # contiguous: slice, no fancy-index copies
@@ -345,7 +362,7 @@ class DirectModel:
             mixed = self.mixed[pi]
             if mixed.any():
                 mi_, mb = pi[mixed], bi[mixed]
-                num, den, _, _ = self._trace(mi_, texels[mb], np.zeros(mi_.size, np.int64), self.n_sub, salt=1)
+                num, den, _, _ = self._trace_all(mi_, texels[mb])
                 out[:, mi_, mb] = self._estimate(unshadowed, mi_, mb, above, num, den, None).T
                 pi, bi = pi[~mixed], bi[~mixed]
         if pi.size:
@@ -360,7 +377,7 @@ class DirectModel:
                 if sel.any():
                     ri, rb = pi[sel], bi[sel]
                     st.pairs_refined += int(sel.sum())
-                    num, den, _, _ = self._trace(ri, texels[rb], np.zeros(ri.size, np.int64), self.n_sub, salt=1)
+                    num, den, _, _ = self._trace_all(ri, texels[rb])
                     out[:, ri, rb] = self._estimate(unshadowed, ri, rb, above, num, den, None).T
         if self.bg is not None:
             out += self.bg[:, texels].toarray()[None].astype(np.float32)
@@ -417,20 +434,20 @@ class DirectModel:
         lat = sobol4(self.n_sub)  # ray i of round r pairs sub-pixel sample r K + i with direction point r K + i
         rho = s.rho.reshape(-1, 3).astype(np.float32)
         d = {
-            "P": mi.Point3f(pos[:, 0], pos[:, 1], pos[:, 2]),
-            "N": mi.Vector3f(nrm[:, 0], nrm[:, 1], nrm[:, 2]),
-            "H": mi.Bool(s.hit.ravel()),
-            "G": mi.UInt32(s.pixel_index.astype(np.uint32)),
-            "LU": mi.UInt32(lat[:, 2]),
-            "LV": mi.UInt32(lat[:, 3]),
-            "CT": mi.Float(np.cos(tab.theta0).astype(np.float32)),
-            "CB": mi.Float(np.cos(tab.theta1).astype(np.float32)),
-            "OM": mi.Float((tab.omega_row / (np.pi * self.k)).astype(np.float32)),
+            "P": mi.Point3f(*(padded(pos[:, i]) for i in range(3))),
+            "N": mi.Vector3f(*(padded(nrm[:, i]) for i in range(3))),
+            "H": mi.Bool(padded(s.hit.ravel())),
+            "G": mi.UInt32(padded(s.pixel_index, np.uint32)),
+            "LU": mi.UInt32(padded(lat[:, 2])),
+            "LV": mi.UInt32(padded(lat[:, 3])),
+            "CT": mi.Float(padded(np.cos(tab.theta0), np.float32)),
+            "CB": mi.Float(padded(np.cos(tab.theta1), np.float32)),
+            "OM": mi.Float(padded(tab.omega_row / (np.pi * self.k), np.float32)),
         }
         if self.c == 1:
-            d["R"] = mi.Float(rho.mean(axis=1))
+            d["R"] = mi.Float(padded(rho.mean(axis=1)))
         else:
-            d["R"] = mi.Color3f(rho[:, 0], rho[:, 1], rho[:, 2])
+            d["R"] = mi.Color3f(*(padded(rho[:, i]) for i in range(3)))
         for v in d.values():
             dr.make_opaque(v)
         d["mix"] = dr.opaque(mi.UInt32, _seed_mix(self.seed))
@@ -447,12 +464,42 @@ class DirectModel:
             _, _, n_act, n_vis = self._trace(pix, tex, self._rounds(pix, tex) * self.k, self.k, salt=0)
         return np.stack([n_act, n_vis], axis=1)
 
-    def _trace(self, pix: np.ndarray, tex: np.ndarray, first: np.ndarray, k: int, salt: int):
+    def _trace_all(self, pix: np.ndarray, tex: np.ndarray):
+        """As :meth:`_trace` with one ray per sub-pixel sample (salt 1), the shadow tests of the later rays skipped
+        where they cannot change the answer: the first ``prefix`` samples (an aligned Sobol block, so a stratified
+        net over the footprint and the texel) are traced first; pairs whose active prefix rays all escape, or
+        all are blocked, take that visibility for the rest of their rays (their cosine terms still summed, without
+        a ray test). Only pairs that see both trace the rest."""
+        s, p = self.n_sub, self.prefix
+        zero = np.zeros(pix.size, np.int64)
+        if p >= s or pix.size == 0:
+            return self._trace(pix, tex, zero, s, salt=1)
+        num, den, n_act, n_vis = self._trace(pix, tex, zero, p, salt=1, of=s)
+        both = (n_act == 0) | ((n_vis > 0) & (n_vis < n_act))
+        rest = np.full(pix.size, p, np.int64)
+        for sel, test in ((np.flatnonzero(both), True), (np.flatnonzero(~both), False)):
+            if sel.size == 0:
+                continue
+            nm, dn, na, nv = self._trace(pix[sel], tex[sel], rest[sel], s - p, salt=1, test=test, of=s)
+            if not test:  # every later ray takes the prefix's verdict
+                seen = n_vis[sel] > 0
+                nm, nv = dn * seen[:, None], na * seen
+            num[sel] += nm
+            den[sel] += dn
+            n_act[sel] += na
+            n_vis[sel] += nv
+        self.stats.pairs_settled += int((~both).sum())
+        return num, den, n_act, n_vis
+
+    def _trace(self, pix: np.ndarray, tex: np.ndarray, first: np.ndarray, k: int, salt: int, test: bool = True,
+               of: int | None = None):
         """Trace k shadow rays for each pair (pix[i], tex[i]), from sub-pixel samples first[i] .. first[i] + k - 1.
 
         Returns (num, den, n_active, n_visible): num and den (T, C) float64, the sums over the rays of
         rho max(0, n.w) Omega / (pi k) with and without visibility; the counts of rays with n.w > 0 and of those
-        that escape. ``salt`` selects an independent digital shift of the directions.
+        that escape. ``salt`` selects an independent digital shift of the directions. ``test=False``: no shadow
+        test (every ray escapes), and ``of``: the rays the sums are the mean over (default k): both for
+        :meth:`_trace_all`, which sums a pair's rays in parts.
 
         One lane per pair, looping over its k rays (a symbolic loop: no per-ray arrays in memory).
         """
@@ -470,13 +517,13 @@ class DirectModel:
         n_vis = np.empty(pix.size, np.int64)
         two_pi_w = 2.0 * np.pi / w_env
         inv24 = float(2.0**-24)
-        scale = self.k / k  # OM holds Omega / (pi K)
+        scale = self.k / (of or k)  # OM holds Omega / (pi K)
         Col = mi.Float if nc == 1 else mi.Color3f
         scene = self.geo.mi_scene
         for a in range(0, pix.size, per):
             b = min(pix.size, a + per)
             t = b - a
-            self.stats.rays_traced += t * k
+            self.stats.rays_traced += t * k if test else 0
             pa, ta = pix[a:b], tex[a:b]
             # per-pair digital shifts of the direction points (hash of global pixel, texel, seed, salt)
             key = (self.s.pixel_index[pa].astype(np.uint64) * np.uint64(0x9E3779B1)
@@ -484,11 +531,11 @@ class DirectModel:
                    + np.uint64(_seed_mix(self.seed) ^ (0x5BD1E995 * salt & 0xFFFFFFFF)))
             h1 = _hash_u32(key).astype(np.uint32)
             h2 = _hash_u32(key + np.uint64(0x632BE59B)).astype(np.uint32)
-            row = mi.UInt32((ta // w_env).astype(np.uint32))
-            col = mi.Float((ta % w_env).astype(np.float32))
-            base = mi.UInt32((pa * n_sub + first[a:b]).astype(np.uint32))
-            sub0 = mi.UInt32(first[a:b].astype(np.uint32))
-            H1, H2 = mi.UInt32(h1), mi.UInt32(h2)
+            row = mi.UInt32(padded(ta // w_env, np.uint32))  # objcam.dr_memory
+            col = mi.Float(padded(ta % w_env, np.float32))
+            base = mi.UInt32(padded(pa * n_sub + first[a:b], np.uint32))
+            sub0 = mi.UInt32(padded(first[a:b], np.uint32))
+            H1, H2 = mi.UInt32(padded(h1)), mi.UInt32(padded(h2))
             ct = dr.gather(mi.Float, d["CT"], row)
             dc = dr.gather(mi.Float, d["CB"], row) - ct
             om = dr.gather(mi.Float, d["OM"], row) * scale
@@ -507,7 +554,7 @@ class DirectModel:
                 w = mi.Vector3f(cp * sin_t, sp * sin_t, cos_t)
                 cosw = dr.dot(n, w)
                 active = hit & (cosw > 0)
-                occluded = scene.ray_test(mi.Ray3f(o, w), active)
+                occluded = scene.ray_test(mi.Ray3f(o, w), active) if test else mi.Bool(False)
                 full = dr.select(active, cosw * om, 0.0)
                 rho = dr.gather(Col, d["R"], ps)
                 seen = dr.select(occluded, 0.0, full)
@@ -555,6 +602,7 @@ class SplitDirect:
     def stats(self) -> DirectStats:
         tot = DirectStats()
         for _, dm in self.parts:
-            for f in ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined"):
+            for f in ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined",
+                      "pairs_settled"):
                 setattr(tot, f, getattr(tot, f) + getattr(dm.stats, f))
         return tot

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from objcam.dr_memory import padded
 from objcam.scene import use_mitsuba
 from objcam.threads import cores, parallel_map
 from objcam.transport.geometry import PixelSamples, SampleParts, SceneGeometry
@@ -232,7 +233,8 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     h = 20.0 * geo.eps
     o = (P + h * Nn).reshape(-1, 3).astype(np.float32)
     d = (-Nn).reshape(-1, 3).astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+    ray = mi.Ray3f(mi.Point3f(*(padded(o[:, i]) for i in range(3))),  # objcam.dr_memory
+                   mi.Vector3f(*(padded(d[:, i]) for i in range(3))))
     ray.maxt = mi.Float(np.float32(2.0 * h))
     si = geo.mi_scene.ray_intersect(ray)
     valid = si.is_valid()
@@ -405,7 +407,8 @@ class Gather:
             pi, ri = np.nonzero(keep)
             o = pos[a:b][pi].astype(np.float32)
             dd = d[pi, ri].astype(np.float32)
-            ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(dd[:, 0], dd[:, 1], dd[:, 2]))
+            ray = mi.Ray3f(mi.Point3f(*(padded(o[:, i]) for i in range(3))),
+                           mi.Vector3f(*(padded(dd[:, i]) for i in range(3))))
             si = self.geo.mi_scene.ray_intersect(ray)
             valid = si.is_valid()
             shp = dr.reinterpret_array(mi.UInt32, si.shape)

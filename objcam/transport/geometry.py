@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from objcam.camera import Camera
+from objcam.dr_memory import padded
 from objcam.scene import MeshData, SceneDescription, build_mitsuba_scene, use_mitsuba
 from objcam.transport.pixels import subpixel_positions
 
@@ -158,7 +159,8 @@ def primary_samples(geo: SceneGeometry, camera: Camera, f: int, k: int, pixel_in
     u, v = subpixel_positions(pix, pooled_width, f, k, rng)
     o, d = camera.rays(u.ravel(), v.ravel())
     o32, d32 = o.astype(np.float32), d.astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(o32[:, 0], o32[:, 1], o32[:, 2]), mi.Vector3f(d32[:, 0], d32[:, 1], d32[:, 2]))
+    ray = mi.Ray3f(mi.Point3f(*(padded(o32[:, i]) for i in range(3))),  # objcam.dr_memory
+                   mi.Vector3f(*(padded(d32[:, i]) for i in range(3))))
     si = geo.mi_scene.ray_intersect(ray)
     valid = si.is_valid()
     rho = si.bsdf().eval_diffuse_reflectance(si, valid)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from objcam.camera import Camera
+from objcam.dr_memory import padded
 from objcam.envmap import to_mitsuba_bitmap
 from objcam.scene import use_mitsuba
 from objcam.transport.geometry import SceneGeometry
@@ -85,7 +86,7 @@ class PathRenderer:
         if tuple(cur.shape) != data.shape:
             raise RuntimeError(f"envmap emitter data has shape {tuple(cur.shape)}, expected {data.shape}: "
                                "build the SceneGeometry with the same env_height and upsample")
-        self._params[key] = mi.TensorXf(np.ascontiguousarray(data, dtype=np.float32))
+        self._params[key] = mi.TensorXf(padded(data, np.float32))  # objcam.dr_memory
         self._params.update()
         dr.eval()
 

@@ -32,7 +32,8 @@ import numpy as np
 # per worker process: the last contexts loaded (path -> model), so a worker loads each camera's model once
 _CONTEXTS: dict[str, object] = {}
 _KEEP = 2
-_STATS = ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined")
+_STATS = ("rays_total", "rays_traced", "pairs_zero", "pairs_analytic", "pairs_traced", "pairs_refined",
+          "pairs_settled")
 
 
 def _write_context(path: Path, obj) -> str:
@@ -42,16 +43,17 @@ def _write_context(path: Path, obj) -> str:
     return str(path)
 
 
-def _context(path: str, variant: str):
-    """The model pickled at ``path``, loaded once per worker with Mitsuba's ``variant`` (the driver's)."""
+def _context(path: str, runtime: tuple[str, dict]):
+    """The model pickled at ``path``, loaded once per worker. runtime: (Mitsuba's variant, the driver's; worker
+    processes per host, from the scheduler)."""
     obj = _CONTEXTS.get(path)
     if obj is None:
         c0 = time.process_time()
         from objcam.scene import use_mitsuba
 
-        # Dr.Jit keeps its own thread pool (every core): a worker is one task at a time, not one core
-        # (dr.set_thread_count(1) was tried; see bench/results.md issue 25 on the segfaults seen at 64 x 128)
+        variant, per_host = runtime
         use_mitsuba(variant)
+        _share_cores(per_host)
         with open(path, "rb") as f:
             obj = pickle.load(f)
         while len(_CONTEXTS) >= _KEEP:
@@ -59,6 +61,24 @@ def _context(path: str, variant: str):
         _CONTEXTS[path] = obj
         _LOAD_CPU[0] += time.process_time() - c0
     return obj
+
+
+def _share_cores(per_host: dict) -> None:
+    """Dr.Jit's thread pool on a worker: this host's cores over the workers on it (at least one thread). Each
+    worker runs one task at a time, its kernels on Dr.Jit's pool; a pool of every core in every worker puts
+    several threads on each core (a LocalCluster of 2 on 2 cores: 4), which contend for it. (Session 15 measured
+    the direct shards at 30% more CPU than the same blocks in-process; whether this closes that gap was not
+    measurable on the loaded machine of session 16: bench/results.md.)"""
+    import drjit as dr
+    from distributed import get_worker
+
+    from objcam.threads import cores
+
+    try:
+        host = get_worker().address.split("://")[-1].rsplit(":", 1)[0]
+    except ValueError:  # not in a worker (a task run in-process by a test)
+        return
+    dr.set_thread_count(max(1, cores() // max(1, int(per_host.get(host, 1)))))
 
 
 _LOAD_CPU = [0.0]  # this worker's CPU seconds spent loading contexts, reported by the next task (then reset)
@@ -80,26 +100,26 @@ def _stats(dm) -> list[list[int]]:
     return [[getattr(p.stats, k) for k in _STATS] for p in _parts(dm)]
 
 
-def direct_task(ctx: str, variant: str, store: str, t0: int, t1: int) -> dict:
+def direct_task(ctx: str, runtime: tuple[str, dict], store: str, t0: int, t1: int) -> dict:
     """Direct-light columns of texels t0 .. t1 - 1 into ``store``'s chunk; returns the rays / pairs counted
     (``stats``, per part) and the CPU accounting."""
     import zarr
 
     c0 = time.process_time()
-    dm = _context(ctx, variant)
+    dm = _context(ctx, runtime)
     before = _stats(dm)
     cols = dm.columns(np.arange(t0, t1, dtype=np.int64))
     zarr.open_array(store, mode="r+")[:, :, t0:t1] = cols
     return {"stats": [[a - b for a, b in zip(x, y)] for x, y in zip(_stats(dm), before)]} | _cpu(c0)
 
 
-def indirect_task(ctx: str, variant: str, folder: str, a: int, b: int, keep: bool) -> dict:
+def indirect_task(ctx: str, runtime: tuple[str, dict], folder: str, a: int, b: int, keep: bool) -> dict:
     """A[:, :, a:b] += the gather's indirect columns, in place; returns the nodes' direct light ``E``
     (C, S, b - a) when ``keep`` (else None), ``seconds``, node shadow ``rays`` traced, and the CPU accounting."""
     import zarr
 
     c0 = time.process_time()
-    gi = _context(ctx, variant)
+    gi = _context(ctx, runtime)
     t, rays = gi.seconds_columns, gi.dm.stats.rays_traced
     A = zarr.open_group(folder, mode="r+")["A"]
     A[:, :, a:b] = A[:, :, a:b] + gi.columns(a, b).astype(np.float32)
@@ -138,10 +158,14 @@ class DaskEngine:
         self.context_bytes = 0  # the largest pickled model a worker loads (its memory, roughly)
 
     # --------------------------------------------------------------------------------------------- helpers
-    def _variant(self) -> str:
+    def _runtime(self) -> tuple[str, dict]:
+        """What a worker needs besides a task's model: Mitsuba's variant, and the workers on each host."""
         import mitsuba as mi
 
-        return mi.variant()
+        per_host: dict[str, int] = {}
+        for w in self.client.scheduler_info().get("workers", {}).values():
+            per_host[w.get("host", "")] = per_host.get(w.get("host", ""), 0) + 1
+        return mi.variant(), per_host
 
     def _submit(self, fn, *args, tag: str):
         self.tasks += 1
@@ -189,8 +213,8 @@ class DaskEngine:
             store = str(shard / "direct")
             zarr.create_array(store, shape=(c, m, max(last)), chunks=(c, m, q), dtype="float32",
                               compressors=_compressor(), fill_value=0.0, zarr_format=3)
-            variant = self._variant()
-            futs = [[self._submit(direct_task, ctx, variant, store, a, b, tag="direct") for a, b in sp] for sp in spans]
+            runtime = self._runtime()
+            futs = [[self._submit(direct_task, ctx, runtime, store, a, b, tag="direct") for a, b in sp] for sp in spans]
             arr = zarr.open_array(store, mode="r")
             parts = _parts(dm)
             for tex, s, e, fs in zip(blocks, first, last, futs):
@@ -214,9 +238,9 @@ class DaskEngine:
             self.context_bytes = max(self.context_bytes, os.path.getsize(ctx))
             if gi.keep_parts and gi.E is None:  # the nodes' direct light, filled from the shards' results
                 gi.E = np.zeros((gi.channels, gi.dm.m, gi.texel_index.size), np.float32)
-            variant = self._variant()
+            runtime = self._runtime()
             spans = [(a, min(n, a + step)) for a in range(0, n, step)]
-            futs = [self._submit(indirect_task, ctx, variant, str(folder), a, b, bool(gi.keep_parts), tag="gather")
+            futs = [self._submit(indirect_task, ctx, runtime, str(folder), a, b, bool(gi.keep_parts), tag="gather")
                     for a, b in spans]
             for (a, b), res in zip(spans, self._results(futs, "gather")):
                 if res["E"] is not None:

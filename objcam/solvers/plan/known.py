@@ -239,10 +239,16 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     if split:
         weights.append(solvers.absolute_weights(G_ref, ls * params.chroma_ls_factor, lr)[0])
 
+    merged = basis is not None and refine_info is None
+    if merged:  # once for both solves (each merged its own copy: 2 x 2.1 GB at 128 x 256)
+        grams = [merge_gram(basis, G) for G in grams]
+        rhs = [np.asarray(basis.T @ B) for B in rhs]
+    del grams_all, G_ref, G
+
     def one(job: tuple) -> EdgeResult:  # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from)
         w, steps, (g, b, y2), start, warm = job + (None,) * (5 - len(job))
         return solve_edges(g, b, chans, y2, D, w, lr_abs, steps=steps, eps_rel=eps, tone=params.edge_tone,
-                           tone_floor=params.edge_tone_floor, basis=basis, start=start, warm=warm)
+                           tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm)
 
     # independent solves (luminance and chroma): a thread each (the caller holds one BLAS thread)
     if params.outliers == "keep":
@@ -250,7 +256,7 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
         rejected = outlier_info = None
     else:
         runs, rejected, outlier_info = _robust_runs(one, weights, tr, use, Y, chans, sigma_abs, params,
-                                                    (grams, rhs, yy))
+                                                    (grams, rhs, yy), basis if merged else None)
     res = runs[0]
     kkt = np.zeros(3)
     iters = 0
@@ -282,7 +288,7 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
 
 
 def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: list, sigma_abs: float | None,
-                 params: SolveParams, data: tuple) -> tuple[list, np.ndarray | None, dict]:
+                 params: SolveParams, data: tuple, merged_on=None) -> tuple[list, np.ndarray | None, dict]:
     """The edge solves with outlier pixels dropped (params.outliers reject) or down-weighted (huber).
 
     1. OUTLIER_AFTER_STEPS edge steps on every pixel; the outliers of that fit (objcam.solvers.outliers) are a
@@ -294,7 +300,8 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
     3. The last solve continues on the last set to params.edge_steps.
 
     ``one((weight, steps, (grams, rhs, yy), start, warm))`` runs solve_edges; ``data`` holds the full grams, rhs
-    and yy. Returns (runs, rejected (M,) bool or None, record)."""
+    and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
+    record)."""
     k0 = min(OUTLIER_AFTER_STEPS, params.edge_steps)
 
     def outliers(runs: list) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -314,7 +321,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         rejected[np.flatnonzero(use)[rows]] = True
         moved = np.zeros(use.shape, bool)
         moved[np.flatnonzero(use)[sel]] = True
-        return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans), d)
+        return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans, merged_on), d)
 
     runs = parallel_map(one, [(w, k0, data) for w in weights])
     rows, drop, rec = outliers(runs)
@@ -341,13 +348,16 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
 
 
 def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: list, rhs: list, yy: np.ndarray,
-              chans: list) -> tuple[list, list, np.ndarray]:
+              chans: list, P=None) -> tuple[list, list, np.ndarray]:
     """(grams, rhs, yy) of the data term with A's rows ``rows`` (M,) bool weighted by 1 - drop (K,) (drop 1:
     removed, negative: added back): A_c^T A_c - A_o^T diag(drop) A_o, A_c^T y - A_o^T diag(drop) y_o, per block;
-    Yo (K, 3) their pixels. The products are in A's own float32 (its stored precision)."""
+    Yo (K, 3) their pixels; P: the basis (N x N') when grams and rhs are merged onto it (then A_o P). The products
+    are in A's own float32 (its stored precision)."""
     grams, rhs = list(grams), list(rhs)
     for c in range(len(grams)):
         Ao = np.asarray(tr.A[c][rows], np.float32)
+        if P is not None:
+            Ao = np.asarray((P.T @ Ao.T).T, np.float32)
         grams[c] = grams[c] - (Ao.T @ (drop[:, None].astype(np.float32) * Ao)).astype(np.float64)
         rhs[c] = rhs[c] - Ao.T.astype(np.float64) @ (drop[:, None] * Yo[:, chans[c]])
     return grams, rhs, yy - np.einsum("i,ij,ij->j", drop, Yo, Yo)
