@@ -18,8 +18,7 @@ from objcam.envmap import EnvGrid
 from objcam.pipeline.cli import main
 from objcam.solvers.plan.targets import TargetData, TargetSolution
 from objcam.solvers.plan.verdict import assess, grade
-from objcam.transport.storage import Transport
-from tests.toy_scenes import sphere_shadow_transport, sky_with_sun
+from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
 
 H = 16
 SIDE = 40
@@ -29,14 +28,7 @@ NOISE = 0.01
 @pytest.fixture(scope="module")
 def toy():
     grid = EnvGrid(H)
-    keep, A = sphere_shadow_transport(grid, SIDE)
-    m = A.shape[0]
-    tr = Transport(A=A[None].astype(np.float32), pixel_index=np.arange(m), image_shape=(SIDE, SIDE), downsample=1,
-                   texel_index=keep, env_height=H, directions=grid.directions().reshape(-1, 3)[keep],
-                   solid_angle=grid.solid_angles().ravel()[keep], albedo=np.ones((m, 3), np.float32),
-                   unknown_albedo=np.zeros(m, bool), coverage=np.ones(m, np.float32),
-                   object_fraction=np.zeros(m, np.float32), model="direct", samples=None, spp=None, max_depth=2,
-                   camera=None)
+    tr, keep = sphere_shadow_toy(grid, SIDE)
     truth = sky_with_sun(grid, keep, sun=30.0)
     clean = tr.predict(tr.x_from_envmap(truth))
     rng = np.random.default_rng(0)
