@@ -186,6 +186,8 @@ def test_mitsuba_sensor_principal_point():
         y = np.asarray(mi.render(mi.load_string(xml)))[..., 0].astype(np.float64)
         centroid = np.array([(y * uu).sum(), (y * vv).sum()]) / y.sum()
         assert np.all(np.abs(centroid - cam.project(p)) < 0.05), (centroid, cam.project(p))
+        # a test of the test (tests/broken.py): a pixel-corner origin (+0.5 px) misses it
+        assert not np.all(np.abs(centroid - (cam.project(p) + 0.5)) < 0.05)
 
 
 def test_run_names_its_results_and_a_copied_capture_stays_fresh(exported, tmp_path, capsys):

@@ -198,6 +198,10 @@ def test_saturated_source_is_flagged(sunrise_out):
     # the flagged source is the sun: its direction within 2 deg of the truth's brightest direction
     sun_dir = brightest_direction(r.envmap)
     assert np.degrees(np.arccos(np.clip(np.dot(src["direction"], sun_dir), -1, 1))) < 2.0
+    # a test of the test (tests/broken.py): the source turned one 5.6-degree texel in azimuth misses it
+    c, s = np.cos(np.radians(5.625)), np.sin(np.radians(5.625))
+    turned = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.asarray(src["direction"])
+    assert not np.degrees(np.arccos(np.clip(np.dot(turned, sun_dir), -1, 1))) < 2.0
     # ... and its energy a lower bound of the sun's (3 x 3 texels around it at 128 rows)
     env = r.envmap.astype(np.float64)
     w = EnvGrid(env.shape[0]).solid_angles()
