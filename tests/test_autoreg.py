@@ -77,6 +77,12 @@ def test_gcv_picks_a_weight_near_the_true_optimum(case):
     # the error at the chosen weight is close to the best achievable
     e = np.linalg.norm(solve_envmap(A, Y, grid, keep, ls=ls, lr=lr).x - x) / np.linalg.norm(x)
     assert e <= 1.25 * err.min()
+    # a test of the test (tests/broken.py): a choice 30x too strong or too weak (a criterion off by its scale)
+    # misses the bounds (measured over the cases: the choice 1.00-1.13 x the best error; 30x 1.6-2.9 x, 1/30 1.2-3.2 x,
+    # the one under 1.25 outside best / 4 .. best x 4)
+    for off in (30.0, 1 / 30.0):
+        e_off = np.linalg.norm(solve_envmap(A, Y, grid, keep, ls=ls * off, lr=lr).x - x) / np.linalg.norm(x)
+        assert not (best / 4 <= ls * off <= best * 4 and e_off <= 1.25 * err.min()), (off, e_off, err.min())
     # the chosen weight minimises the criterion over the grid
     assert info["gcv"].min() >= info["per_lr"][0]["gcv"].min() - 1e-15
     assert "ignored" in info["nonnegativity"]

@@ -120,6 +120,11 @@ def test_the_merged_joint_solve_reports_the_texels_objective_and_recovers_a_grou
     np.testing.assert_allclose(fine, res.objective, rtol=1e-6)
     assert np.linalg.norm(res.x - x_true) / np.linalg.norm(x_true) < 1e-2
     assert np.linalg.norm(res.rho[0] - rho) / np.linalg.norm(rho) < 1e-2
+    # a test of the test (tests/broken.py): the solve's start (albedo 0.5 on the free pixels) and a flat envmap (each
+    # target's true mean) miss them
+    assert np.linalg.norm(rho0 - rho) / np.linalg.norm(rho) >= 1e-2
+    flat = np.broadcast_to(x_true.mean(axis=0, keepdims=True), x_true.shape)
+    assert np.linalg.norm(flat - x_true) / np.linalg.norm(x_true) >= 1e-2
 
 
 def test_restrict_weak_excludes_or_ties_to_the_texel_above():

@@ -166,5 +166,8 @@ def test_render_image_pixel_mapping():
         y = img[..., 0].astype(np.float64)
         centroid = np.array([(y * uu).sum(), (y * vv).sum()]) / y.sum()
         assert np.all(np.abs(centroid - cam.project(p)) < 0.05), (centroid, cam.project(p))
-        # the ellipse's area in pixels: pi r^2 fx fy / z^2
+        # a test of the test (tests/broken.py): a pixel-corner origin (+0.5 px, COLMAP's) misses it
+        assert not np.all(np.abs(centroid - (cam.project(p) + 0.5)) < 0.05)
+        # the ellipse's area in pixels: pi r^2 fx fy / z^2 (fx taken for fy, 22% off, misses it)
         assert abs(y.sum() / (np.pi * radius**2 * cam.fx * cam.fy / pc[2] ** 2) - 1) < 0.02
+        assert not abs(y.sum() / (np.pi * radius**2 * cam.fx * cam.fx / pc[2] ** 2) - 1) < 0.02

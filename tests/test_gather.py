@@ -87,7 +87,7 @@ def test_columns_match_path_traced_indirect_light(scene, max_depth, max_nodes):
     # cannot see the last of four bounces
     short = GatherIndirect(geo, s, texels, ENV_H, 1, dataclasses.replace(gs, max_depth=3)) \
         if max_depth == 6 else None
-    short_errs = []
+    short_errs, short_sums = [], []
     for b, j in enumerate(texels):
         env = pr.onehot([j])
         r1 = indirect_render(pr, env, spp, max_depth, seed=11, scale=1).mean(axis=1)
@@ -102,8 +102,11 @@ def test_columns_match_path_traced_indirect_light(scene, max_depth, max_nodes):
         assert err < 0.05, (j, err, noise / np.linalg.norm(ref))
         assert cols[:, b].sum() == pytest.approx(ref.sum(), rel=0.03)
         if short is not None:
-            short_errs.append(col_err(short.columns(b, b + 1)[0][:, 0]))
+            sc = short.columns(b, b + 1)[0][:, 0]
+            short_errs.append(col_err(sc))
+            short_sums.append(sc.sum() / ref.sum() - 1)
     assert short is None or max(short_errs) >= 0.05, short_errs
+    assert short is None or max(np.abs(short_sums)) >= 0.03, short_sums  # and the column sums' bound
     # deterministic: the same settings give the same columns
     again = GatherIndirect(geo, s, texels, ENV_H, 1, gs).columns(0, texels.size)[0]
     assert np.array_equal(cols, again)

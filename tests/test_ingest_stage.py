@@ -59,7 +59,8 @@ def run_ingest(capture: Path, work: Path, capsys) -> tuple[int, str]:
 @pytest.mark.parametrize("noisy", [False, True])
 def test_bracket_merge_recovers_radiance(tmp_path, capsys, noisy):
     """Noise-free raws: every unsaturated texel within 1% of the true radiance (only 14-bit quantisation is
-    left). With shot and read noise (50,000 e- full well): unbiased, median error well under 1%."""
+    left). With shot and read noise (50,000 e- full well): unbiased, median error well under 1%. Broken variant,
+    asserted below: the merge 1.5% too bright."""
     import cv2
 
     from objcam.image_io import read_exr
@@ -78,12 +79,16 @@ def test_bracket_merge_recovers_radiance(tmp_path, capsys, noisy):
     sun[2:6, 2:6] = True
     assert np.array_equal(~valid, sun)
     assert np.all(np.isfinite(img[sun])) and np.all(img[sun] > 0) and np.all(img[sun] <= rad[sun])
-    ratio = img[valid] / rad[valid]
-    rel = np.abs(ratio - 1)
-    if noisy:  # measured: median 0.5%, mean ratio 1.000 (per-pixel noise reaches 2-8% on the darkest texels)
-        assert np.median(rel) < 0.01 and abs(ratio.mean() - 1) < 0.002, (np.median(rel), ratio.mean())
-    else:  # measured: max 0.2%
-        assert rel.max() < 0.01, rel.max()
+    def missed(merged: np.ndarray) -> bool:
+        ratio = merged[valid] / rad[valid]
+        rel = np.abs(ratio - 1)
+        if noisy:  # measured: median 0.5%, mean ratio 1.000 (per-pixel noise reaches 2-8% on the darkest texels)
+            return not (np.median(rel) < 0.01 and abs(ratio.mean() - 1) < 0.002)
+        return not rel.max() < 0.01  # measured: max 0.2%
+
+    assert not missed(img)
+    # a test of the test (tests/broken.py): a merge 1.5% too bright (exposure times 1.5% short) misses the bounds
+    assert missed(img * 1.015)
     meta = json.loads((d / "merge.json").read_text())
     assert meta["exposure_times_s"] == pytest.approx(TIMES) and meta["n_invalid"] == 16
     assert meta["reader"] == "rawpy superpixel" and meta["white_balance"] == pytest.approx(list(WB), rel=1e-4)

@@ -248,6 +248,10 @@ def test_joint_with_albedo_smoothness(scene):
     assert r.info["lp_abs"] > 0 and r.info["lp_rel"] == pytest.approx(1e-3)
     ev = evaluate_joint(r.x, r.rho, x_true, rho_true, grid, keep)
     assert ev["rho_rel_rmse"] < 0.05
+    # a test of the test (tests/broken.py): a flat albedo (its true mean) misses it (measured: the estimate 0.012,
+    # flat 0.27; an albedo prior 1e4 x stronger, lp=10, still 0.016: a smooth prior cannot flatten this albedo)
+    flat_rho = [np.broadcast_to(rt.mean(axis=0, keepdims=True), rt.shape) for rt in rho_true]
+    assert not evaluate_joint(r.x, flat_rho, x_true, rho_true, grid, keep)["rho_rel_rmse"] < 0.05
     # the albedo prior made the albedo smoother than without it
     G = albedo_smoothness_operator(blocks[0].pixel_index, blocks[0].image_shape)
     r0 = solve_joint(blocks, grid, keep, ls=1e-3)
@@ -290,6 +294,11 @@ def test_multiview_stacking_equals_concatenated_system():
     assert c2.objective.sum() == pytest.approx(c1.objective.sum(), rel=1e-5)
     ev = evaluate_joint(c2.x, c2.rho, x_true, rho_true, grid, keep)
     assert ev["rho_rel_rmse"] < 0.05
+    # a test of the test (tests/broken.py): a flat albedo per camera (its true mean) and the two cameras' albedos
+    # swapped miss it (measured: the estimate 0.013, flat 0.27, swapped 0.37)
+    flat_rho = [np.broadcast_to(rt.mean(axis=0, keepdims=True), rt.shape) for rt in rho_true]
+    assert not evaluate_joint(c2.x, flat_rho, x_true, rho_true, grid, keep)["rho_rel_rmse"] < 0.05
+    assert not evaluate_joint(c2.x, c2.rho[::-1], x_true, rho_true, grid, keep)["rho_rel_rmse"] < 0.05
 
 
 # ------------------------------------------------------------------------------------------ shapes and helpers

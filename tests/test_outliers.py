@@ -58,11 +58,15 @@ def test_robust_scale_and_rows():
     rng = np.random.default_rng(0)
     r = rng.normal(0.0, 2.0, (5000, 3))
     assert robust_scale(r) == pytest.approx(2.0, rel=0.05)
+    assert not robust_scale(1.1 * r) == pytest.approx(2.0, rel=0.05)  # a test of the test: 10% wider misses it
     y = r.copy()
     y[[10, 20, 30]] += 100.0  # three wild pixels (50x the spread)
     rows, rec = outlier_rows(y, np.zeros_like(y), sigma_abs=1.0, k=6.0, max_share=0.1)
     assert set(np.flatnonzero(rows)) == {10, 20, 30}
     assert rec["pixels"] == 3 and rec["robust_scale"] == pytest.approx(2.0, rel=0.05) and rec["chi2_share"] > 0.5
+    # a test of the test (tests/broken.py): a plain standard deviation, which the three wild pixels inflate
+    # (measured 3.2), misses the robust scale's bound
+    assert not float(np.std(y)) == pytest.approx(2.0, rel=0.05)
     assert np.all(rec["weights"][rows] < 0.2) and np.all(rec["weights"][~rows] == 1.0)
     # a model wrong everywhere: more than max_share beyond the threshold drops nothing
     rows, rec = outlier_rows(y, np.zeros_like(y), sigma_abs=0.1, k=0.5, max_share=0.1)

@@ -151,16 +151,38 @@ def test_stage_recovers_the_envmap(courtyard, courtyard_out):
     assert idx["env_height"] == 32 and set(idx["probes"]) == {"ball", "known"}
 
 
+KNOWN_RESIDUAL_PX, KNOWN_BIAS_PX = 0.55, 0.3  # the known centre's edge fit: measured 0.32 / -0.01 px; 1.5 mm off 0.84 / 0.61
+
+
+def known_fit_missed(fit: dict) -> list[str]:
+    """The bounds (above) that a known-centre fit's record ``fit`` (probe.json's "fit") misses."""
+    missed = [] if fit["residual_px"] < KNOWN_RESIDUAL_PX else ["residual"]
+    return missed + ([] if abs(fit["edge_bias_px"]) < KNOWN_BIAS_PX else ["bias"])
+
+
 def test_known_centre_is_used_and_checked(courtyard, courtyard_out):
-    r, _ = courtyard
+    """Broken variants, asserted below: the manifest's centre 1.5 mm off (fit bounds, offset, warning), the truth's
+    flat sky and the map turned 90 degrees (the envmap's bound)."""
+    r, b = courtyard
     rec = json.loads((courtyard_out / "known" / "probe.json").read_text())
     assert rec["fit"]["mode"] == "known" and np.allclose(rec["fit"]["centre_world"], r.centre)
-    assert rec["fit"]["residual_px"] < 1.0 and abs(rec["fit"]["edge_bias_px"]) < 1.0
+    assert known_fit_missed(rec["fit"]) == [], rec["fit"]
     # ... and checked: a fit at its height lands next to it (no warning)
     assert rec["fit"]["fitted_offset_mm"] < 0.3 and not rec["warnings"]  # measured 0.05 mm
     est = read_latlong(courtyard_out / "known" / "envmap_gt_32.exr")
     valid = read_uint8(courtyard_out / "known" / "valid_32.png") > 127
-    assert relative_rmse(est, _truth32(r), valid) < 0.15
+    assert relative_rmse(est, _truth32(r), valid) < 0.15  # measured 0.059
+    # a test of the test (tests/broken.py): the manifest's centre 1.5 mm off misses the fit's bounds (residual 0.84,
+    # bias 0.61 px, the photo's fit 0.98 mm away, warned); the truth's flat sky and the map turned 90 degrees miss
+    # the envmap's (3.3 / 4.6)
+    from objcam.probe import fit_ball
+    from tests.broken import rotated, truth_constant
+
+    off = fit_ball(b.merge, r.camera, R, known_centre=r.centre + [1.5e-3, 0.0, 0.0])
+    assert set(known_fit_missed(off.to_dict())) == {"residual", "bias"}
+    assert off.fitted_offset_mm >= 0.3 and off.warnings
+    for broken in (truth_constant(_truth32(r), valid), rotated(est, valid, 90.0)):
+        assert relative_rmse(broken, _truth32(r), valid) >= 0.15
 
 
 def test_saturated_source_is_flagged(sunrise_out):
@@ -176,6 +198,10 @@ def test_saturated_source_is_flagged(sunrise_out):
     # the flagged source is the sun: its direction within 2 deg of the truth's brightest direction
     sun_dir = brightest_direction(r.envmap)
     assert np.degrees(np.arccos(np.clip(np.dot(src["direction"], sun_dir), -1, 1))) < 2.0
+    # a test of the test (tests/broken.py): the source turned one 5.6-degree texel in azimuth misses it
+    c, s = np.cos(np.radians(5.625)), np.sin(np.radians(5.625))
+    turned = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.asarray(src["direction"])
+    assert not np.degrees(np.arccos(np.clip(np.dot(turned, sun_dir), -1, 1))) < 2.0
     # ... and its energy a lower bound of the sun's (3 x 3 texels around it at 128 rows)
     env = r.envmap.astype(np.float64)
     w = EnvGrid(env.shape[0]).solid_angles()
@@ -189,6 +215,7 @@ def test_saturated_source_is_flagged(sunrise_out):
 
 
 def test_probe_truth(courtyard, courtyard_out):
+    """Broken variants, asserted below: the truth's flat sky, the map turned 90 degrees."""
     r, _ = courtyard
     env, valid = probe_truth(courtyard_out, "t0", 32)
     assert env.shape == (32, 64, 3) and valid.dtype == bool
@@ -201,8 +228,15 @@ def test_probe_truth(courtyard, courtyard_out):
     # 24 rows: 512 is no multiple of 24, so the fine map goes through a common 1536-row grid
     env24, valid24 = probe_truth(courtyard_out, "t0", 24)
     assert env24.shape == (24, 48, 3)
-    assert relative_rmse(env24, area_downsample(np.repeat(np.repeat(r.envmap.astype(np.float64), 3, 0), 3, 1), 24),
-                         valid24) < 0.15  # measured 0.07
+    truth24 = area_downsample(np.repeat(np.repeat(r.envmap.astype(np.float64), 3, 0), 3, 1), 24)
+    assert relative_rmse(env24, truth24, valid24) < 0.15  # measured 0.07
+    # a test of the test (tests/broken.py): the truth's flat sky, and the map turned 90 degrees, miss both bounds
+    # (measured 3.0 / 4.0 at 16 rows, 3.2 / 4.4 at 24)
+    from tests.broken import rotated, truth_constant
+
+    for env_b, truth_b, valid_b, bound in ((env16, truth16, valid16, 0.1), (env24, truth24, valid24, 0.15)):
+        for broken in (truth_constant(truth_b, valid_b), rotated(env_b, valid_b, 90.0)):
+            assert relative_rmse(broken, truth_b, valid_b) >= bound
     env1, _ = probe_truth(courtyard_out, "t1", 32)  # the known-centre probe
     assert not np.array_equal(env1, env)
     assert probe_truth(courtyard_out, "nowhere", 32) is None

@@ -29,7 +29,7 @@ def test_height_factor_keeps_the_absolute_prior_of_a_smooth_sky():
     """The derivation behind the factor, checked: for a smooth radiance function sampled at H and 2H, A's columns
     (texel solid angles) shrink the relative unit mean(diag A^T A) ~16x, ||D x||^2 stays, so ls_rel x 16 keeps
     ls_abs ||D x||^2 within a few percent."""
-    out = {}
+    out, plain = {}, {}
     for h in (16, 32):
         grid = EnvGrid(h)
         keep = np.flatnonzero(grid.directions().reshape(-1, 3)[:, 2] > 0)
@@ -44,4 +44,7 @@ def test_height_factor_keeps_the_absolute_prior_of_a_smooth_sky():
         ls_abs, _ = absolute_weights(A.T @ A, 1.0 * height_factor(h), 0.0)
         D = difference_operator(grid, keep)
         out[h] = ls_abs * float(np.sum((D @ x) ** 2))
+        plain[h] = absolute_weights(A.T @ A, 1.0, 0.0)[0] * float(np.sum((D @ x) ** 2))
     assert out[32] == pytest.approx(out[16], rel=0.1)
+    # a test of the test (tests/broken.py): without the height factor (ls_rel 1 at both heights) it misses
+    assert not plain[32] == pytest.approx(plain[16], rel=0.1), plain

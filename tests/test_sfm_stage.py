@@ -158,6 +158,9 @@ def test_plane_height_frame_without_board():
     back = sim.apply(pts)
     # height from the 98th percentile of the object's points: scale within 2%; plane z = 0; origin on the axis
     assert diag["scale_m_per_unit"] * true.scale ** -1 == pytest.approx(1.0, abs=0.03)
+    # a test of the test (tests/broken.py): the object's height misread by 5% (0.105 m) misses the scale bound
+    _, bad = plane_height_frame(pts, centres, axes, object_height=0.105)
+    assert not bad["scale_m_per_unit"] * true.scale ** -1 == pytest.approx(1.0, abs=0.03), bad
     assert np.abs(back[:600, 2]).max() < 0.002
     assert np.linalg.norm(sim.apply(to_sfm.apply(np.zeros((1, 3))))[0, :2]) < 0.003
     c0 = sim.apply(centres[:1])[0]

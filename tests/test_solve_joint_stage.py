@@ -77,6 +77,10 @@ def test_objective_monotone_and_kkt(capture):
 # the albedo scores 0.149 / 0.868 (cam0_rot0) and 0.218 / 0.830, its mean everywhere 0.202 / 0.291, one shadow
 # ray and one camera ray per pixel (the four transport sample counts at 1) 0.171 / 0.756.
 ALBEDO_RMSE_MAX, ALBEDO_SSIM_MIN = 0.13, 0.88
+# The albedo as estimated (no fitted scale; the object's pixels pin it): SSIM measured 0.908 (0.895 in an earlier
+# session); bounded at 0.85 before, which the photo taken as the albedo passed on cam0_rot0 (0.868; cam0_rot150
+# 0.830; the albedo's mean everywhere 0.291)
+ALBEDO_SSIM_AS_IS = 0.88
 # The envmaps': the sun within half a 22.5-degree texel (measured 0 / 8.3 deg; 16 / 11 for the joint solve's own
 # envmaps, solve.final_envmap=joint); SSIM measured 0.705 / 0.749 against the truth's row-mean map's 0.53 / 0.54
 # (joint solve's own 0.36 / 0.71, solve.ls=1e6 0.34 / 0.37, one ray per pixel 0.47 / 0.82).
@@ -85,7 +89,8 @@ SUN_DEG, SSIM_MIN = 12.0, 0.65
 
 def missed_bounds(r: dict) -> list[str]:
     """The bounds one target's evaluate record ``r`` misses."""
-    checks = {"albedo_rmse": r["albedo_relative_rmse_fitted_scale"] < ALBEDO_RMSE_MAX,
+    checks = {"albedo_as_estimated": r["albedo_relative_rmse"] < 0.25 and r["albedo_ssim"] > ALBEDO_SSIM_AS_IS,
+              "albedo_rmse": r["albedo_relative_rmse_fitted_scale"] < ALBEDO_RMSE_MAX,
               "albedo_ssim": r["albedo_ssim_fitted_scale"] > ALBEDO_SSIM_MIN, "sun": r["brightest_angle_deg"] < SUN_DEG,
               "ssim": r["ssim"] > SSIM_MIN,
               "beats_row_mean": r["ssim"] > r["baselines"]["row_mean"]["ssim"]}
@@ -102,7 +107,7 @@ def test_albedo_and_envmap_against_truth(capture):
         # the fitted scale before); after the fitted per-channel scale, reported beside it: 0.097 / 0.916. A
         # constant albedo (the support's ground colour) scores 0.35 / 0.5 after that scale here
         assert r["albedo_scored_as"] == "as estimated" and r["albedo_scale"] == [1.0, 1.0, 1.0]
-        assert r["albedo_relative_rmse"] < 0.25 and r["albedo_ssim"] > 0.85, r
+        assert r["albedo_relative_rmse"] < 0.25 and r["albedo_ssim"] > ALBEDO_SSIM_AS_IS, r
         assert r["albedo_relative_rmse_fitted_scale"] < 0.18 and r["albedo_ssim_fitted_scale"] > 0.85, r
         assert r["albedo_pixels"] > 1800
         # the object's known albedo pins the scale, so the envmap is compared as it is (no fitted scale)
@@ -155,6 +160,8 @@ def test_a_broken_answer_fails_the_joint_bounds(capture, tmp_path, broken):
                 m[t] |= albedo_metrics(alb, true_alb, amask)
     missed = {t: missed_bounds(r) for t, r in m.items()}
     assert any(missed.values()), (broken, m)
+    if broken in ("the photo as the albedo", "the albedo's mean everywhere"):  # the as-estimated pair on each target
+        assert all("albedo_as_estimated" in v for v in missed.values()), missed
 
 
 def test_the_final_step_beats_the_joint_solves_own_envmaps_and_albedo(capture, tmp_path):

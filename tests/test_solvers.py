@@ -369,6 +369,12 @@ def test_solve_envmap_objective_and_recovery(small_scene):
     x_true = truth.reshape(-1, 3)[keep]
     omega = grid.solid_angles().ravel()[keep]
     assert np.allclose(omega @ r.x, omega @ x_true, rtol=0.05)
+    # a test of the test (tests/broken.py): a transport off by pi (a lost 1 / pi) and a solve drowned in its
+    # prior (ls 1e6) miss it (measured: power 1.02 / 1.02 / 1.02 of the truth's; 0.33 and 1.24)
+    lost_pi = solve_envmap(A * np.float32(np.pi), Y, grid, keep)
+    drowned = solve_envmap(A, Y, grid, keep, ls=1e6)
+    assert not np.allclose(omega @ lost_pi.x, omega @ x_true, rtol=0.05)
+    assert not np.allclose(omega @ drowned.x, omega @ x_true, rtol=0.05)
     with pytest.raises(ValueError):
         solve_envmap(A, Y, grid, keep, method="lbfgs")
 

@@ -100,7 +100,7 @@ def test_noise_model_statistics():
 
 def test_hemisphere_irradiance(tmp_path):
     """Envmap = L over the upper hemisphere, direct light only: an unshadowed plane pixel shows rho * L
-    (irradiance pi L, radiance rho / pi * E)."""
+    (irradiance pi L, radiance rho / pi * E). Broken variants, asserted below: off by pi, channels reversed."""
     env = np.zeros((16, 32, 3), np.float32)
     env[:8] = [1.0, 2.0, 3.0]
     write_exr(tmp_path / "hemi.exr", env)
@@ -125,3 +125,7 @@ def test_hemisphere_irradiance(tmp_path):
     want = rho * np.array([1.0, 2.0, 3.0])
     ratio = img[far].mean(axis=0) / want
     assert np.all(np.abs(ratio - 1) < 0.02), ratio
+    # a test of the test (tests/broken.py): the radiance off by pi (a lost 1 / pi) and the albedo's channels
+    # reversed miss it
+    for broken in (img[far].mean(axis=0) / np.pi / want, img[far].mean(axis=0)[::-1] / want):
+        assert not np.all(np.abs(broken - 1) < 0.02), broken

@@ -68,6 +68,9 @@ def test_dngs_read_back_with_exposure_and_radiance(capture):
     # measured: median 1.000, per-pixel spread ~1.5% (20,000 e- full well, 16 spp render is exact truth here)
     assert np.median(ratio) == pytest.approx(1.0, abs=0.005)
     assert np.percentile(np.abs(ratio - 1), 90) < 0.05
+    # a test of the test (tests/broken.py): the raw divided by the next frame's time (4x) misses both bounds
+    wrong = img.rgb[ok] / times[1] / clean[ok]
+    assert not np.median(wrong) == pytest.approx(1.0, abs=0.005) and not np.percentile(np.abs(wrong - 1), 90) < 0.05
 
 
 def test_truth_cameras_and_object_pose(capture):
