@@ -158,7 +158,10 @@ def _free_block(Q: np.ndarray, idx: np.ndarray) -> np.ndarray:
     S = np.empty((k, k))
     step = max(1, _BAND_BYTES // (8 * max(Q.shape[0], 1)))
     for r0 in range(0, k, step):
-        np.take(Q.take(idx[r0 : r0 + step], axis=0), idx, axis=1, out=S[r0 : r0 + step])
+        # mode="clip" (idx is in range): numpy buffers ``out`` under the default mode="raise", a second copy of
+        # the band; unbuffered, the gather took half the CPU at 64 x 128 (bench/results.md, issue 26 session 17)
+        band = Q.take(idx[r0 : r0 + step], axis=0, mode="clip")
+        np.take(band, idx, axis=1, out=S[r0 : r0 + step], mode="clip")
     return S
 
 
