@@ -86,8 +86,8 @@ class SolveParams(BaseModel):
         "truth's above it), at a cost in the 0-10 deg band's energy under high lamps; tie changes little")
     outliers: Literal["huber", "reject", "keep"] = Field(
         "huber", description="known albedo, prior=edges: pixels whose residual exceeds outlier_threshold x "
-        "max(the stated noise, the residuals' robust spread), found twice (after the first edge steps, then from a "
-        "fresh solve without them), are down-weighted to threshold / |residual| ('huber') or dropped ('reject') "
+        "max(the stated noise, the residuals' robust spread), found after the first edge steps (again from a "
+        "fresh solve without them when they bent that fit), are down-weighted to threshold / |residual| ('huber') or dropped ('reject') "
         "and the solve continues on the rest (fireflies, hot pixels, glints, geometry the model lacks: "
         "objcam.solvers.outliers; nothing is done past a tenth of the pixels); 'keep': plain least squares. "
         "Measured on the hard-case suite and the core bench (bench/results.md, issue 22)")
