@@ -12,7 +12,7 @@ final step brings it to 0.847 (+5.9%; blue channel +9.8%). The bounce refit pass
 support cell, including those no pixel sees (issue 29's fix: they kept the transport's guess, 0.5); before that
 fix the too-dark unseen cells offset the too-bright seen ones here (0.799 on this capture, 0.818 with the earlier
 render seeds). A second refit leaves it (0.848): its input, the joint solve's albedo, stays at 0.93.
-Unexplained: why the joint solve's albedo is biased bright at 48 px and not at 128 px."""
+Unexplained: why the joint solve's albedo is biased bright at 48 px and not at 128 px.
 
 Interreflections are forced into A (transport.auto_noise=1e-6): the object's pixels pin the scale, and the light the
 bright support throws onto the dark object is 7-26% of it here; without it in A the pinned scale inherits that error
