@@ -180,7 +180,8 @@ def final_weak(cams: list[dict], grams: list[np.ndarray], grid: EnvGrid, texel_i
     """(N,) bool: the texels the final problem barely sees, by the known-albedo rule (rules.weak_texels: relative
     column norm under params.weak_fraction) on its own Gram matrices ``grams`` (3 x (N, N), A = diag(rho) A'
     stacked over the cameras); None when they are kept or an A is supersampled (as known.known_weak)."""
-    if params.weak_texels == "keep" or any(c["tr"].output_height != c["tr"].env_height for c in cams):
+    tr = [c.get("tr") for c in cams]  # a bare problem (A, Y only) is not supersampled
+    if params.weak_texels == "keep" or any(t is not None and t.output_height != t.env_height for t in tr):
         return None
     diag = sum(np.diagonal(g) for g in grams) / len(grams)
     dirs = grid.directions().reshape(-1, 3)[texel_index]
