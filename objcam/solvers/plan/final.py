@@ -180,8 +180,9 @@ def final_weak(cams: list[dict], grams: list[np.ndarray], grid: EnvGrid, texel_i
     """(N,) bool: the texels the final problem barely sees, by the known-albedo rule (rules.weak_texels: relative
     column norm under params.weak_fraction) on its own Gram matrices ``grams`` (3 x (N, N), A = diag(rho) A'
     stacked over the cameras); None when they are kept or an A is supersampled (as known.known_weak)."""
-    tr = [c.get("tr") for c in cams]  # a bare problem (A, Y only) is not supersampled
-    if params.weak_texels == "keep" or any(t is not None and t.output_height != t.env_height for t in tr):
+    # supersampled: an A finer than its output; a bare problem (no transport, or one without those sizes) is not
+    sizes = [(getattr(c.get("tr"), "output_height", None), getattr(c.get("tr"), "env_height", None)) for c in cams]
+    if params.weak_texels == "keep" or any(o != e for o, e in sizes):
         return None
     diag = sum(np.diagonal(g) for g in grams) / len(grams)
     dirs = grid.directions().reshape(-1, 3)[texel_index]
