@@ -376,6 +376,9 @@ def test_bounce_refit_redoes_the_support_light_from_the_transport_as_built(captu
                  "--set", "transport.env_height=8"]) == 0
     info = json.loads((work / "solve" / "cam0_rot0" / "solve.json").read_text())
     assert len(info["bounce_refits"]) == 1 and info["bounce_refits"][0]["cells_updated"] > 0
+    # the support's cells no pixel sees take the seen cells' mean estimate (issue 29), recorded
+    refit = info["bounce_refits"][0]
+    assert refit["cells_unseen_filled"] > 0 and 0 < refit["unseen_cell_albedo"] <= 1
     # the solve before the refit only provides its albedo: loose, quadratic prior; the final one is the edge prior's
     first = info["bounce_refits"][0]["first_solve"]
     assert first["prior"] == "smooth" and first["tol"] == 3e-2 and info["prior"] == "edges"

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.hard.capture import DISTANCE, add_noise, log
-from bench.hard.lighting import HEIGHT, Lighting, make_envmap
+from bench.hard.lighting import HEIGHT, Lighting, file_columns, make_envmap
 from bench.hard.objects import make_object, write_ply
 from bench.hard.scene import look_at_camera, render
 
@@ -37,8 +37,9 @@ FALLBACK = (Lighting("room", "room2"), Lighting("window", "window"), Lighting("s
 
 
 def lightings(hdri_dir: Path | None, procedural: bool = False) -> list[tuple[str, np.ndarray]]:
-    """[(name, envmap (HEIGHT, 2 HEIGHT, 3) float32)]: Blender's HDRIs area-averaged to the suite's grid (negative
-    compression noise set to 0) when found (and not ``procedural``), else the procedural fallback."""
+    """[(name, envmap (HEIGHT, 2 HEIGHT, 3) float32)] on the suite's internal grid (bench/hard/lighting.py): Blender's
+    HDRIs (standard lat-long files, converted by ``file_columns``) area-averaged to it (negative compression noise set
+    to 0) when found (and not ``procedural``), else the procedural fallback."""
     from objcam.image_io import read_exr
 
     dirs = [] if procedural else [hdri_dir] if hdri_dir else list(HDRI_DIRS)
@@ -46,7 +47,8 @@ def lightings(hdri_dir: Path | None, procedural: bool = False) -> list[tuple[str
         if d and all((d / f"{n}.exr").is_file() for n in BLENDER_HDRIS):
             out = []
             for n in BLENDER_HDRIS:
-                e = np.clip(read_exr(d / f"{n}.exr")[..., :3].astype(np.float64), 0, None)
+                # the file is in the standard convention, the scene renderer reads the internal grid (issue 23)
+                e = file_columns(np.clip(read_exr(d / f"{n}.exr")[..., :3].astype(np.float64), 0, None))
                 f = e.shape[0] // HEIGHT
                 e = e.reshape(HEIGHT, f, 2 * HEIGHT, f, 3).mean(axis=(1, 3))  # a box over f x f equal-size texels
                 out.append((n, e.astype(np.float32)))
@@ -61,7 +63,8 @@ def render_family(mesh: Path, camera: dict, envs: list[tuple[str, np.ndarray]], 
     cached in ``cache`` (None: not cached)."""
     images, mcs = [], []
     for name, env in envs:
-        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp"
+        # "-std": renders since the HDRIs are read in the standard convention (earlier ones saw them mirrored)
+        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp-std"
         path = cache / f"{key}.npz" if cache is not None else None
         if path is not None and path.is_file():
             r = np.load(path)
@@ -94,7 +97,7 @@ def write_family_capture(root: Path, mesh_v, mesh_f, camera: dict, envs: list[tu
     sigma = math.hypot(noise, mc)
     for (name, env), img in zip(envs, images):
         (root / "truth" / name).mkdir(parents=True, exist_ok=True)
-        write_exr(root / "truth" / name / "envmap.exr", env)
+        write_exr(root / "truth" / name / "envmap.exr", file_columns(env))  # the standard file convention
         write_exr(root / "targets" / f"{name}.exr", add_noise(img, noise, zlib.crc32(name.encode())))
         (root / "targets" / f"{name}.json").write_text(json.dumps(camera, indent=1))
         truth["envmaps"][name] = f"truth/{name}/envmap.exr"

@@ -150,10 +150,18 @@ def rof_graph(f: np.ndarray, w: np.ndarray, graph: ImageGraph, lam: float, free:
         U = (U - tau * graph.grad_t(qh, qv) + tau * W * F) / (1.0 + tau * W)
         U = np.where(graph.on, np.clip(U, lo, hi), F)
         Ubar = 2.0 * U - U_old
-        change = float(np.linalg.norm(U - U_old) / max(np.linalg.norm(U), 1e-30))
+        change = _l2(U - U_old) / max(_l2(U), 1e-30)
         if change < tol:
             break
     return graph.from_grid(U), (qh, qv), it, change
+
+
+def _l2(a: np.ndarray) -> float:
+    """The Euclidean norm of ``a`` (any shape) without BLAS: np.linalg.norm's ddot wakes OpenBLAS's threads on
+    every call (twice per Chambolle-Pock iteration, which runs outside single_blas_thread); on a loaded machine
+    that was about half of the final step's time on a 128 px capture (issue 29, bench/results.md)."""
+    v = np.ravel(a)
+    return float(np.sqrt(np.einsum("i,i->", v, v)))
 
 
 def tv_albedo(A: np.ndarray, Y: np.ndarray, X: np.ndarray, rho_prev: np.ndarray, fixed: np.ndarray,

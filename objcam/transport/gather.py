@@ -617,7 +617,8 @@ def bounce_indirect(parts: dict, scale: np.ndarray, channel: int = 0) -> np.ndar
 def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float = 1e-3
                  ) -> tuple[np.ndarray | None, dict]:
     """The change of A' (rows ``rows``, this group's N texels) when the plane cells of unknown albedo reflect with
-    the mean of the albedo estimated at the pixels over them, instead of the albedo the transport assumed.
+    the mean of the albedo estimated at the pixels over them, instead of the albedo the transport assumed; the free
+    cells no pixel sees take the seen cells' count-weighted mean.
 
     rho: (len(rows), C') the estimate at ``rows`` (grey: mean over channels). Returns (dA (len(rows), N) float32
     per channel-mean, or None when no cell is seen) and a summary dict."""
@@ -634,8 +635,15 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
         return None, {"cells_updated": 0}
     new = old.copy()
     new[upd] = np.clip(tot[upd] / cnt[upd], rho_min, 1.0)
+    # free cells no pixel sees (beside and behind the object, outside the view) light the object too: left at the
+    # transport's guessed albedo they bias every known pixel's light, so they take the seen cells' mean estimate
+    # (count-weighted: the mean albedo over the pixels that see the support)
+    unseen = (cnt == 0) & free & (old > 0)
+    fill = float(np.clip(tot[upd].sum() / cnt[upd].sum(), rho_min, 1.0))
+    new[unseen] = fill
+    changed = upd | unseen
     scale = np.ones(n_nodes)
-    scale[upd] = new[upd] / old[upd]
+    scale[changed] = new[changed] / old[changed]
     C = parts["E"].shape[0]
     # one pass of the pixels' gather over the difference of the nodes' light, in float32 (the change is a few % of
     # the indirect part, itself a few % of A), for the wanted rows only
@@ -645,4 +653,5 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
         lit, base = parallel_map(lambda sc, c=c: _node_light(parts, sc, c, np.float32), [scale, np.ones(n_nodes)])
         dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ (lit - base)) / C
     return dA, {"cells_updated": int(upd.sum()), "cell_albedo_before": float(np.mean(old[upd])),
-                "cell_albedo_after": float(np.mean(new[upd]))}
+                "cell_albedo_after": float(np.mean(new[upd])), "cells_unseen_filled": int(unseen.sum()),
+                "unseen_cell_albedo": fill}

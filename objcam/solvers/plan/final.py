@@ -10,19 +10,20 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import scipy.sparse as sp
 
 from objcam import solvers
 from objcam.envmap import EnvGrid
 from objcam.solvers.albedo_gcv import ladder, score, weighted_chi2
 from objcam.solvers.albedo_tv import tv_albedo
-from objcam.solvers.basis import texel_basis
+from objcam.solvers.basis import restrict_weak, solved_edges, texel_basis
 from objcam.solvers.edges import solve_edges
 from objcam.solvers.joint import weighted_gram
 from objcam.solvers.joint.blocks import DEFAULT_RHO_MIN
 from objcam.solvers.joint.scale_step import known_pixel_scale
 from objcam.solvers.plan.defaults import ALBEDO_TV_FACTOR, ALBEDO_TV_TOP, EDGE_EPS_KNOWN, FINAL_EARLY_STEPS
 from objcam.solvers.plan.params import SolveParams
-from objcam.solvers.plan.rules import fitted_noise, noise_ls, texel_group
+from objcam.solvers.plan.rules import fitted_noise, noise_ls, relative_column_norms, texel_group
 from objcam.threads import parallel_map, single_blas_thread
 
 
@@ -148,9 +149,12 @@ def final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel
         yy += np.einsum("mlc,mlc->lc", c["Y"], c["Y"])
     with single_blas_thread():
         ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, ls, params.lr)
-        D = solvers.difference_operator(grid, texel_index)
         eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
         P = texel_basis(grid, texel_index, texel_group(params, known=True))
+        weak = final_weak(cams, grams, grid, texel_index, params)
+        if weak is not None:  # held to params.weak_texels, as the known-albedo solve holds them
+            P = restrict_weak(grid, texel_index, P, weak, params.weak_texels)
+        D = solved_edges(solvers.difference_operator(grid, texel_index), P)
         X = np.zeros((n, L, 3))
         kkt = np.zeros((L, 3))
         hist = []
@@ -164,7 +168,23 @@ def final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel
             X[:, l, :] = r.x
             kkt[l] = [np.max(q.kkt_residual) for q in r.results]
             hist.append(r.objective_history)
+    solved = np.ones(n, bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
     return X, {"ls_relative": ls, "prior": "edges", "edge_eps": eps, "tone": params.edge_tone,
                "texel_group": texel_group(params, known=True), "kkt_residual_max": float(kkt.max()),
-               "objective_history": hist}
+               "objective_history": hist, "solved": solved,
+               **({"weak_texels": params.weak_texels, "texels_weak": int(weak.sum())} if weak is not None else {})}
+
+
+def final_weak(cams: list[dict], grams: list[np.ndarray], grid: EnvGrid, texel_index: np.ndarray,
+               params: SolveParams) -> np.ndarray | None:
+    """(N,) bool: the texels the final problem barely sees, by the known-albedo rule (rules.weak_texels: relative
+    column norm under params.weak_fraction) on its own Gram matrices ``grams`` (3 x (N, N), A = diag(rho) A'
+    stacked over the cameras); None when they are kept or an A is supersampled (as known.known_weak)."""
+    # supersampled: an A finer than its output; a bare problem (no transport, or one without those sizes) is not
+    sizes = [(getattr(c.get("tr"), "output_height", None), getattr(c.get("tr"), "env_height", None)) for c in cams]
+    if params.weak_texels == "keep" or any(o != e for o, e in sizes):
+        return None
+    diag = sum(np.diagonal(g) for g in grams) / len(grams)
+    dirs = grid.directions().reshape(-1, 3)[texel_index]
+    return relative_column_norms(np.asarray(diag, np.float64), dirs) < params.weak_fraction
 

@@ -77,7 +77,8 @@ class SolveParams(BaseModel):
         "(bench/results.md). method=adam always optimises the texels")
     lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
     weak_texels: Literal["keep", "exclude", "tie"] = Field(
-        "exclude", description="known albedo: texels the photo barely sees (column norm under weak_fraction x the "
+        "exclude", description="known albedo, and the unknown albedo's final step (final_envmap=known, on its own "
+        "A = diag(rho) A'): texels the photo barely sees (column norm under weak_fraction x the "
         "median above the horizon: the row below the horizon, seen past the support's edge through a sliver) -- "
         "'exclude': not solved, 0 and unmarked in envmap_mask.png; 'tie': each takes the value of the first "
         "well-seen texel above it in its column (objcam.solvers.basis.restrict_weak); 'keep': solved like the "

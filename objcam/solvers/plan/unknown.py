@@ -12,7 +12,8 @@ The plan, in order (:func:`solve_unknown`):
    and on a pixel subsample when a bounce refit follows; the support's light on the object redone from the
    estimated albedo and the joint solve rerun;
 4. :func:`objcam.solvers.plan.final.final_step` (``final_envmap=known``): the albedo's total-variation step and
-   every envmap at that albedo by the known-albedo solver;
+   every envmap at that albedo by the known-albedo solver (the texels the data barely see held to
+   ``weak_texels``, as for a known albedo);
 5. :func:`unknown_solutions`: each target's envmap, albedo, prediction and solve.json.
 
 With one illumination and no pixel of known albedo the albedo alone explains every photo: the envmap then comes
@@ -60,6 +61,7 @@ class PlanRecord:
     refits: list[dict]  #: one entry per bounce refit and camera
     final: dict | None  #: the final step's record
     unconstrained: bool  #: one illumination, every albedo unknown: the envmap comes from the priors
+    solved: np.ndarray | None = None  #: (N_union,) bool the final step's solved texels (weak ones excluded)
 
 
 def solve_unknown(scene, data: dict[str, TargetData], params: SolveParams, comp, tr_of_cam: dict,
@@ -80,7 +82,7 @@ def solve_unknown(scene, data: dict[str, TargetData], params: SolveParams, comp,
     setup, conv, ls_source, sigma = joint_setup(scene, data, params, cams, L, with_final)
     t0 = time.perf_counter()
     res, auto, refits = solve_with_refits(cams, comp, grid, setup, params, sigma, unconstrained)
-    final_info = None
+    final_info, solved = None, None
     if with_final and not res.diverged:
         # the albedo's edge-preserving step and each envmap once more by the known-albedo solver
         t1 = time.perf_counter()
@@ -89,12 +91,13 @@ def solve_unknown(scene, data: dict[str, TargetData], params: SolveParams, comp,
         X_final, rho_final, final_info = final_step(scene, data, cams, res, grid, comp.texel_index, params,
                                                     ls_rule, tv=setup.lp == 0)
         final_info["seconds"] = round(time.perf_counter() - t1, 3)
+        solved = final_info.pop("solved", None)
         res = dataclasses.replace(res, x=X_final, rho=rho_final)
     solve_s = time.perf_counter() - t0
     # a diverging iteration (only the paper's damped steps can: the exact alternation is monotone) is stopped by
     # the solver, which returns the best estimate it saw: that is what is written, marked diverged, and the stage
     # summary says so in one line
-    record = PlanRecord(round(solve_s, 4), conv, ls_source, auto, refits, final_info, unconstrained)
+    record = PlanRecord(round(solve_s, 4), conv, ls_source, auto, refits, final_info, unconstrained, solved)
     return unknown_solutions(params, comp, grid, cams, res, record)
 
 
@@ -182,7 +185,8 @@ def unknown_solutions(params: SolveParams, comp, grid: EnvGrid, cams: list[dict]
     (objcam.solvers.joint.JointResult, its envmaps possibly replaced by the final step's)."""
     L = len(comp.illuminations)
 
-    mask = texel_mask(grid, comp.texel_index)
+    # the texels the final step left out as weak (weak_texels=exclude) are not solved: 0 and unmarked
+    mask = texel_mask(grid, comp.texel_index if record.solved is None else comp.texel_index[record.solved])
     n_held = int(sum(int(c["fixed"].sum()) for c in cams))  # pixels held at their known albedo
     per_target: dict[str, TargetSolution] = {}
     for p, c in enumerate(cams):
