@@ -69,14 +69,28 @@ def test_a_lamps_shadow_points_away_from_it(tmp_path, az):
         assert not _post_ok(*errs), errs
 
 
-def test_lighting_families_hold_what_they_say():
-    env, rot = make_envmap(Lighting("lamp", "lamp10", 10.0), 137.0)
-    assert env.shape == (256, 512, 3) and rot == 137.0
+def _lamp_errors(env: np.ndarray, elev: float, az: float) -> tuple[float, float]:
+    """(elevation, azimuth) errors in degrees of the brightest texel of ``env`` (H, 2H, 3) against a lamp at
+    (``elev``, ``az``) degrees."""
     h = env.shape[0]
     r, c = np.unravel_index(int(np.argmax(env[..., 0])), env.shape[:2])
-    elev = 90.0 - 180.0 * (r + 0.5) / h
-    az = 360.0 * (c + 0.5) / (2 * h)
-    assert abs(elev - 10.0) < 1.5 and abs(az - (30.0 + 137.0)) < 1.5  # the lamp at 30 + rotation degrees
+    found_az = 360.0 * (c + 0.5) / (2 * h)
+    return 90.0 - 180.0 * (r + 0.5) / h - elev, (found_az - az + 180.0) % 360.0 - 180.0
+
+
+def test_lighting_families_hold_what_they_say():
+    """Broken variants, asserted below (each misses the lamp's 0.5 degree bound): the map turned the other way
+    (-137 degrees: azimuth 86 degrees off), upside down (elevation 20 degrees off), and left unturned (137 off)."""
+    env, rot = make_envmap(Lighting("lamp", "lamp10", 10.0), 137.0)
+    assert env.shape == (256, 512, 3) and rot == 137.0
+    errs = _lamp_errors(env, 10.0, 30.0 + 137.0)  # the lamp at 30 + rotation degrees
+    # measured 0.20 / 0.01 degree (elevation / azimuth: the brightest texel's centre, 0.70 degree texels, so up to
+    # 0.35 from quantisation alone); bound 0.5 degree (was 1.5, which passed a lamp a texel or two off)
+    assert max(map(abs, errs)) < 0.5, errs
+    for broken in (np.roll(env, -int(round(2 * 137.0 / 360.0 * env.shape[1])), axis=1), env[::-1],
+                   make_envmap(Lighting("lamp", "lamp10", 10.0), 0.0)[0]):
+        errs = _lamp_errors(broken, 10.0, 30.0 + 137.0)
+        assert not max(map(abs, errs)) < 0.5, errs
     small = env.reshape(32, 8, 64, 8, 3).mean(axis=(1, 3))  # (equal-weight mean is enough for a contrast)
     assert source_contrast(small) > 100  # one lamp on a dim sky
     env2, rot2 = make_envmap(Lighting("hdri", "forest", hdri="forest"), 137.0)
