@@ -272,7 +272,8 @@ def test_supersampled_transport(capture, tmp_path, capsys):
 
 def test_analysis_maps(capture):
     """Leverage, uncertainty, spectrum and Cook's distance of the scene: identities that must hold, and the
-    method's qualitative finding that the horizon is resolved worse than mid elevations."""
+    method's qualitative finding that the horizon is resolved worse than mid elevations. Broken variants, asserted
+    below: a flat uncertainty map, the precision written for the uncertainty."""
     d = capture / "objcam" / "analysis"
     info = json.loads((d / "analysis.json").read_text())
     g = info["groups"]["cam0"]
@@ -284,7 +285,28 @@ def test_analysis_maps(capture):
         assert (d / "cam0" / name).is_file(), name
     assert (d / "t0" / "cooks.png").is_file() and info["targets"]["t0"]["cooks_max"] > 0
     unc = read_exr(d / "cam0" / "uncertainty.exr")[..., 0]
+    assert _horizon_over_mid(unc) > 1.2  # measured 1.51 on this 64 x 64 scene (1.44 in an earlier session)
+    # a test of the test (tests/broken.py), each missing the bound: a flat map (an uncertainty that ignores A: 1.0)
+    # and the precision sqrt(diag(A^T A) + lr) written for the uncertainty (0.33). Not a variant: the
+    # uncertainty blind to collinearity, 1 / sqrt(diag(A^T A) + lr), gives 4.09 and passes: on this scene the
+    # horizon's weak (grazing) columns alone make it uncertain, so the bound checks the ordering, not its cause
+    # (test_analysis.py's sphere toy, with unit-norm columns, is the check of the collinearity)
+    from objcam.solvers import absolute_weights, gram
+    from objcam.transport import load_transport
+
+    tr = load_transport(capture / "objcam" / "transport", "t0")
+    G = tr.gram()[0] if tr.channels == 1 else gram(tr.A.mean(axis=0))
+    lr = absolute_weights(G, 0.0, 1e-4)[1]  # the analysis stage's default ridge
+    precision = np.zeros(EnvGrid(tr.env_height).n_texels)
+    precision[tr.texel_index] = np.sqrt(np.diag(G) + lr)
+    for broken in ((unc > 0).astype(float), precision.reshape(EnvGrid(tr.env_height).shape)):
+        assert not _horizon_over_mid(broken) > 1.2, _horizon_over_mid(broken)
+
+
+def _horizon_over_mid(unc: np.ndarray) -> float:
+    """Mean uncertainty of the solved texels 80-90 degrees from the zenith over that of those 30-60 degrees, in a
+    lat-long map ``unc`` (H, 2H) (0 where unsolved)."""
     theta = np.degrees(EnvGrid(unc.shape[0]).centres()[0])
     horizon = unc[(theta > 80) & (theta < 90) & (unc > 0)]
     mid = unc[(theta > 30) & (theta < 60) & (unc > 0)]
-    assert horizon.mean() > 1.2 * mid.mean()  # measured 1.44 on this 64 x 64 scene
+    return float(horizon.mean() / mid.mean())

@@ -77,13 +77,33 @@ def test_dng_round_trip_levels_and_metadata(tmp_path):
         np.testing.assert_allclose(np.median(other.rgb, axis=(0, 1)), [0.25, 0.5, 0.75], rtol=2e-4)
 
 
+NOISE_WELL = 40000.0  # electrons at ISO 100
+
+
+def noise_missed(rgb: np.ndarray) -> list[str]:
+    """The bounds that the decoded superpixel image ``rgb`` (H, W, 3, white-level units) of a flat 0.3 field, shot
+    at ISO 100 with a 40,000 e- full well, misses: "mean" (within 0.2% of 0.3) and "std" (red, one CFA sample per
+    pixel: shot noise sqrt(0.3 * 40000) e-, within 10%). Measured: mean -0.006%, red std +0.16%; a 1024-sample std
+    scatters 2.2% (1 / sqrt(2 n)), so 10% is 4.5 of its sigma (was 15%, which nothing below needed)."""
+    missed = []
+    if not abs(rgb.mean() / 0.3 - 1) < 2e-3:
+        missed.append("mean")
+    if not rgb[..., 0].std() == pytest.approx(np.sqrt(0.3 * NOISE_WELL) / NOISE_WELL, rel=0.10):
+        missed.append("std")
+    return missed
+
+
+def noisy_flat(path: Path, **kw) -> np.ndarray:
+    """The decoded (superpixel) image of a flat 0.3 field written as a noisy DNG with ``kw`` for write_dng."""
+    kw = {"iso": 100, "noise": NoiseModel(full_well_e=NOISE_WELL), **kw}
+    return read_raw(write_dng(path, block2(np.full((32, 32, 3), 0.3)), exposure_time=0.01, **kw)).rgb
+
+
 def test_noisy_dng_and_tiff16(tmp_path):
-    sig = block2(np.full((32, 32, 3), 0.3))
-    p = write_dng(tmp_path / "n.dng", sig, exposure_time=0.01, iso=100, noise=NoiseModel(full_well_e=40000))
-    img = read_raw(p)
+    """A noisy DNG keeps its mean and its shot noise (broken variants: NOISE_BROKEN below); 16-bit TIFF levels
+    read back exactly."""
     # 2 greens binned: shot noise sqrt(0.3 * 40000) e- per sample
-    assert abs(img.rgb.mean() / 0.3 - 1) < 2e-3
-    assert img.rgb[..., 0].std() == pytest.approx(np.sqrt(0.3 * 40000) / 40000, rel=0.15)
+    assert noise_missed(noisy_flat(tmp_path / "n.dng")) == []
 
     import cv2
 
@@ -93,6 +113,28 @@ def test_noisy_dng_and_tiff16(tmp_path):
     lin = read_tiff16(tmp_path / "lin.tif")
     np.testing.assert_allclose(lin.rgb[1, 1], [1000 / 65535, 30000 / 65535, 65000 / 65535], rtol=1e-6)
     assert lin.saturated[0, 0] and lin.saturated.sum() == 80  # 65000 >= 99% of 65535 too
+
+
+# deliberately broken noise (tests/broken.py), each must miss the bounds above (measured in the comments)
+NOISE_BROKEN = {
+    # the gain misread: shot at ISO 400 (a quarter of the electrons) where ISO 100 was meant: red std +104%
+    "ISO 400": (lambda p: noisy_flat(p, iso=400), "std"),
+    # the full well 4x too small (10,000 e-): red std +104%
+    "full well 4x small": (lambda p: noisy_flat(p, noise=NoiseModel(full_well_e=NOISE_WELL / 4)), "std"),
+    # no noise model applied (only 14-bit quantisation left): red std -100%
+    "noise off": (lambda p: noisy_flat(p, noise=None), "std"),
+    # the black level (512 of 16383 DN) not subtracted: mean +7.3%
+    "black level kept": (lambda p: noisy_flat(p) * (WHITE - BLACK) / WHITE + BLACK / WHITE, "mean"),
+    # the two greens summed, not averaged: mean +33%
+    "greens summed": (lambda p: noisy_flat(p) * [1.0, 2.0, 1.0], "mean"),
+}
+
+
+@pytest.mark.parametrize("broken", list(NOISE_BROKEN))
+def test_broken_noise_fails_the_bounds(tmp_path, broken):
+    """A test of the test: the noisy DNG's bounds, run on a deliberately broken noise or decode, are missed."""
+    make, bound = NOISE_BROKEN[broken]
+    assert bound in noise_missed(make(tmp_path / "b.dng")), broken
 
 
 # -- HDR merges -------------------------------------------------------------------------------------------------

@@ -98,6 +98,8 @@ def test_bracket_merge_recovers_radiance(tmp_path, capsys, noisy):
 
 
 def test_views_copies_and_record(tmp_path, capsys):
+    """The view copies are per second and white-balanced: v1 (twice v0's light) reads 2x v0 to 0.1%. Broken
+    variants, asserted below: v1's time misread (1/80 s), each copy scaled to its own maximum, v1 0.2% off."""
     from objcam.image_io import read_exr
 
     cap = tmp_path / "cap"
@@ -113,8 +115,16 @@ def test_views_copies_and_record(tmp_path, capsys):
     assert (r["width"], r["height"], r["scale"]) == (W, H, 1.0) and r["source"] == "views/v1.dng"
     assert r["exposure"] == {"time_s": pytest.approx(0.01), "iso": 100.0, "f_number": pytest.approx(8.0)}
     v0, v1 = read_exr(out / "views" / "v0.exr"), read_exr(out / "views" / "v1.exr")
-    # per second and white-balanced: v1 got twice the light of v0
-    assert np.median(v1 / np.maximum(v0, 1e-9)) == pytest.approx(2.0, rel=1e-3)
+    # per second and white-balanced: v1 got twice the light of v0 (measured ratio 2.0000)
+    def ratio_missed(a: np.ndarray, b: np.ndarray) -> bool:
+        return not np.median(b / np.maximum(a, 1e-9)) == pytest.approx(2.0, rel=1e-3)
+
+    assert not ratio_missed(v0, v1)
+    # a test of the test (tests/broken.py), each missing the bound: v1's time read as 1/80 s for 1/100 s (a wrong
+    # EXIF rational, ratio 1.6); each copy scaled to its own maximum (an auto exposure, ratio 1.0); v1's time off
+    # by 0.2% (ratio 2.004)
+    for broken in (v1 * 0.01 / 0.0125, v1 * v0.max() / v1.max(), v1 * 1.002):
+        assert ratio_missed(v0, broken), np.median(broken / np.maximum(v0, 1e-9))
     import cv2
 
     png = cv2.imread(str(out / "views" / "v0.png"))
@@ -123,6 +133,8 @@ def test_views_copies_and_record(tmp_path, capsys):
 
 
 def test_views_downsampled_to_max_size(tmp_path, capsys):
+    """A view larger than max_size is area-averaged to it, keeping its mean radiance to 1e-4. Broken variants,
+    asserted below: the time or white balance left in, an sRGB copy, nearest-pixel and unfiltered bilinear shrinks."""
     from objcam.image_io import read_exr
 
     cap = tmp_path / "cap"
@@ -139,7 +151,22 @@ def test_views_downsampled_to_max_size(tmp_path, capsys):
     assert (rec["width"], rec["height"], rec["photo_width"]) == (200, 120, 250) and rec["scale"] == 0.8
     img = read_exr(tmp_path / "work" / "ingest" / "views" / "a.exr")
     assert img.shape == (120, 200, 3)
-    assert img.mean() == pytest.approx(big.mean() / 0.5, rel=0.01)  # area averaging keeps radiance
+    # area averaging keeps radiance: measured mean off by 2e-7 (14-bit rounding and float32 sums); bound 1e-4
+    # (was 1%, which passed a copy shrunk by nearest pixel or unfiltered bilinear)
+    def mean_missed(copy: np.ndarray) -> bool:
+        return not copy.mean() == pytest.approx(big.mean() / 0.5, rel=1e-4)
+
+    assert not mean_missed(img)
+    # a test of the test (tests/broken.py), each missing the bound: the copy not divided by its 0.5 s (-50%), not
+    # white-balanced (the sensor's values, -28%), sRGB-encoded like the PNG preview (+38%), shrunk by nearest
+    # pixel (+5.9e-4) or by unfiltered bilinear (+1.5e-4) instead of area averaging (the last two made from the
+    # true radiance, so they carry no DNG rounding)
+    import cv2
+
+    srgb = np.where(img <= 0.0031308, 12.92 * img, 1.055 * np.clip(img, 0.0031308, None) ** (1 / 2.4) - 0.055)
+    shrunk = [cv2.resize(big / 0.5, (200, 120), interpolation=m) for m in (cv2.INTER_NEAREST, cv2.INTER_LINEAR)]
+    for broken in (img * 0.5, img / np.array(WB), srgb, *shrunk):
+        assert mean_missed(broken), broken.mean() / (big.mean() / 0.5)
 
 
 # ------------------------------------------------------------------------------------------------ bad input
