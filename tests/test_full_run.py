@@ -173,7 +173,8 @@ def test_report_tells_the_whole_capture(run, tmp_path):
 
 
 # The export of the photographed capture (below): bounds on its Mitsuba render against the solve's prediction
-EXPORT_FULL_MAX = 0.02  # relative L2, one 256-spp render with interreflections; measured 1.3% (0.63% of it noise)
+EXPORT_FULL_MAX = 0.01  # bias beyond Monte Carlo noise of the render with interreflections (issue 23's target); measured
+# 0.76% with the bounce refit of the object's nodes (1.1% before it); the broken scale below 3.4%
 EXPORT_DIRECT_MAX = 0.01  # bias beyond Monte Carlo noise of the direct-light render; measured 0.61%
 
 
@@ -187,11 +188,12 @@ def test_export_of_a_photographed_capture(run, tmp_path):
     """Unknown albedo, no pixel of known albedo: envmap and albedo are known only up to one scale, and the export
     bakes the solve's per-pixel albedo (objcam.export.bake) at the scale its A's interreflections assumed
     (objcam.export.scale: x 4.56 here, the envmap divided by it), so its Mitsuba scene renders the prediction:
-    the direct light to 0.61% beyond Monte Carlo noise (bound 1%), with the interreflections to 1.1% (1.3% with
-    the noise of one render; bound 2%). What is left is the solve's own model: its A reflects the object's light at
-    the texture stage's albedo (0.49), while its estimate of the object is 0.75 at that scale (bench/results.md).
-    Broken: the solve's albedo baked at its own scale (before this rule) renders the object 18% too dark and misses
-    the bound (3.1%). Every SfM view travels with its camera."""
+    the direct light to 0.58% beyond Monte Carlo noise (bound 1%), with the interreflections to 0.73% (two 256-spp
+    renders, their noise 0.63% taken out; bound 1%, issue 23's target). That needs the solve's A to reflect every
+    surface at the albedo it writes: the bounce refit redoes the object's nodes too (its estimate 0.75 at this
+    scale, where the texture stage's 0.65 was assumed; 1.1% before), and runs although this envmap is unconstrained.
+    Broken: the solve's albedo baked at its own scale (before objcam.export.scale) renders the object 18% too dark
+    and misses the bound (3.5%). Every SfM view travels with its camera."""
     import pycolmap
 
     from objcam.image_io import read_exr
@@ -217,14 +219,20 @@ def test_export_of_a_photographed_capture(run, tmp_path):
     mi = use_mitsuba()
     # with interreflections: one render
     scene = mi.load_file(str(out / "mitsuba" / "t0.xml"))
-    full = np.linalg.norm(_render(mi, scene, h, w, f)[used] - pred[used]) / norm
-    # direct light against the prediction's direct part (rho A'_direct x: A' less the gather's indirect columns)
+    fulls = [_render(mi, scene, h, w, f, seed=s) for s in (1, 2)]
+    full_rel = np.linalg.norm((fulls[0] + fulls[1])[used] / 2 - pred[used]) / norm
+    full_noise = np.linalg.norm(fulls[0][used] - fulls[1][used]) / 2 / norm
+    full = float(np.sqrt(max(full_rel**2 - full_noise**2, 0.0)))
+    # direct light against the model's direct part, rho A'_direct x (A' as the transport built it, less the gather's
+    # indirect columns: the bounce refit changed only the indirect part of the solve's A')
     tr = load_transport(work / "transport", "t0")
     x = tr.x_from_envmap(from_file(env.astype(np.float64))).astype(np.float64)
-    ind = np.zeros((h * w, 3))
-    ind[tr.pixel_index] = bounce_indirect(tr.bounce_parts(), np.ones(len(tr.bounce_parts()["node_rho"]))) @ x
+    Ap = tr.rho_free()
+    ind = bounce_indirect(tr.bounce_parts(), np.ones(len(tr.bounce_parts()["node_rho"])))
+    lit = np.zeros((h * w, 3))
+    lit[tr.pixel_index] = np.stack([(Ap[c if Ap.shape[0] == 3 else 0] - ind) @ x[:, c] for c in range(3)], axis=1)
     albedo = read_exr(work / "solve" / "t0" / "albedo.exr")[..., :3].astype(np.float64)
-    direct = pred - ind.reshape(h, w, 3) * albedo
+    direct = lit.reshape(h, w, 3) * albedo
     two = mi.load_file(str(out / "mitsuba" / "t0.xml"), max_depth=2)
     halves = [_render(mi, two, h, w, f, seed=s) for s in (1, 2)]
     dnorm = np.linalg.norm(direct[used])
@@ -236,10 +244,12 @@ def test_export_of_a_photographed_capture(run, tmp_path):
     for key in [key for key in params.keys() if key.endswith("reflectance.data") or key == "envmap.data"]:
         params[key] = params[key] * (k if key == "envmap.data" else 1.0 / k)
     params.update()
-    broken = np.linalg.norm(_render(mi, scene, h, w, f)[used] - pred[used]) / norm
-    print(f"export of the photographed capture: relative L2 {full:.4f} (interreflections; broken scale {broken:.4f}),"
+    broken = float(np.sqrt(max((np.linalg.norm(_render(mi, scene, h, w, f, seed=1)[used] - pred[used]) / norm) ** 2
+                               - 2 * full_noise**2, 0.0)))  # one render: its noise is sqrt(2) x the two's mean
+    print(f"export of the photographed capture: bias {full:.4f} (interreflections, noise {full_noise:.4f}; broken "
+          f"scale {broken:.4f}),"
           f" direct light bias {bias:.4f} (noise {noise:.4f})")
-    assert full < EXPORT_FULL_MAX and bias < EXPORT_DIRECT_MAX, (full, bias, noise)
+    assert full < EXPORT_FULL_MAX and bias < EXPORT_DIRECT_MAX, (full, full_noise, bias, noise)
     assert broken > EXPORT_FULL_MAX, broken
     model = pycolmap.Reconstruction(str(out / "colmap"))
     views = sorted((work / "sfm" / "cameras" / "views").glob("*.json"))

@@ -205,3 +205,22 @@ def test_bounce_parts_redo_the_support_light_for_a_new_albedo(tmp_path):
     seen[parts["pixel_node"][rows][parts["pixel_node"][rows] >= 0]] = True
     only_seen = bounce_indirect(parts, np.where(free & seen, NEW / RHO, 1.0)) - u
     assert not abs(frac(only_seen) - 1) < 0.02, frac(only_seen)
+    # an object of unknown albedo (its nodes made free here): the pixels that see it update its nodes, the unseen
+    # ones (its far side) take the seen object nodes' mean, the support's unseen cells the support's; each from its
+    # own surface (issue 23: A' then reflects every surface at the albedo the solve writes). Broken variant: one mean
+    # over both surfaces for every unseen node (i29's first fill), which gives the support's cells the object's
+    # albedo in part and misses the support's value
+    n_obj_live = int((gi.nodes.live[: gi.nodes.n_object] >= 0).sum())
+    po = parts["pixel_object_node"][rows]
+    assert (po[obj] >= 0).all() and (po[obj] < n_obj_live).all() and (po[sup] < 0).all()
+    assert parts["node_object"][:n_obj_live].all() and not parts["node_object"][n_obj_live:].any()
+    both = dict(parts, node_unknown=parts["node_unknown"] | parts["node_object"])
+    OBJ = 0.3
+    on_obj = (po >= 0) & (parts["pixel_node"][rows] < 0)  # pixels whose estimate goes to an object node
+    est = np.where(on_obj[:, None], OBJ, NEW) * np.ones((rows.size, 3))
+    _, info2 = bounce_delta(both, est, rows)
+    assert info2["object_nodes_updated"] > 0 and info2["object_albedo_after"] == pytest.approx(OBJ, rel=0.05)
+    assert info2["object_nodes_unseen_filled"] > 0 and info2["unseen_object_albedo"] == pytest.approx(OBJ, rel=0.05)
+    assert info2["unseen_cell_albedo"] == pytest.approx(NEW, rel=0.02)
+    pooled = float(np.mean(np.where(on_obj, OBJ, NEW)[(po >= 0) | (parts["pixel_node"][rows] >= 0)]))  # one fill
+    assert not pooled == pytest.approx(NEW, rel=0.02), pooled

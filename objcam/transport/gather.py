@@ -534,6 +534,23 @@ class GatherIndirect:
                 cell = self.nodes.grid.cell_of(xy[ok])
                 node = np.where(cell >= 0, self.nodes.live[self.nodes.n_object + np.maximum(cell, 0)], -1)
                 self.pixel_node[rows[ok]] = node
+        # the object node under each kept pixel that sees the object (-1 elsewhere): the object's own albedo estimate
+        # there says what it reflects onto the support (a bounce refit of an object of unknown albedo)
+        self.pixel_object_node = np.full(m, -1, np.int64)
+        n_obj_live = int((self.nodes.live[: self.nodes.n_object] >= 0).sum())  # object nodes' rows come first
+        if self.keep_parts and n_obj_live:
+            from scipy.spatial import cKDTree
+
+            hit = self.nodes.samples.hit[:n_obj_live]
+            node_of = np.broadcast_to(np.arange(n_obj_live)[:, None], hit.shape)[hit]
+            tree = cKDTree(self.nodes.samples.pos[:n_obj_live][hit])
+            for rows, ps in parts.parts:
+                first = np.argmax(ps.hit, axis=1)
+                pick = np.arange(rows.size)
+                ok = ps.hit[pick, first] & ps.on_object[pick, first]
+                if ok.any():
+                    _, j = tree.query(ps.pos[pick, first][ok])  # the nearest of the object nodes' points
+                    self.pixel_object_node[rows[ok]] = node_of[j]
         self.E = None  # (C, S, N) float32: the nodes' direct light of every column, kept for bounce_parts
         self.seconds_setup = time.perf_counter() - t0
         self.seconds_columns = 0.0
@@ -560,7 +577,9 @@ class GatherIndirect:
             raise RuntimeError("bounce_parts: build with keep_parts=True and compute the columns first")
         out: dict[str, np.ndarray] = {"E": self.E, "node_rho": self.nodes.rho.astype(np.float32),
                                       "node_unknown": self.nodes.samples.unknown.any(axis=1),
-                                      "pixel_node": self.pixel_node, "bounces": np.array(self.bounces)}
+                                      "pixel_node": self.pixel_node, "pixel_object_node": self.pixel_object_node,
+                                      "node_object": self.nodes.samples.on_object.any(axis=1),
+                                      "bounces": np.array(self.bounces)}
         for c in range(self.channels):
             for name, W in (("W_pix", self.W_pix[c]), ("W_node", self.W_node[c] if self.W_node else None)):
                 if W is None:
@@ -616,31 +635,44 @@ def bounce_indirect(parts: dict, scale: np.ndarray, channel: int = 0) -> np.ndar
 
 def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float = 1e-3
                  ) -> tuple[np.ndarray | None, dict]:
-    """The change of A' (rows ``rows``, this group's N texels) when the plane cells of unknown albedo reflect with
-    the mean of the albedo estimated at the pixels over them, instead of the albedo the transport assumed; the free
-    cells no pixel sees take the seen cells' count-weighted mean.
+    """The change of A' (rows ``rows``, this group's N texels) when the surface nodes of unknown albedo reflect
+    with the mean of the albedo estimated at the pixels that see them (the support's plane cells, and the object's
+    nodes when its albedo is unknown), instead of the albedo the transport assumed; the free nodes no pixel sees
+    take the count-weighted mean of the seen free nodes of the same surface (the object's, or the support's).
 
     rho: (len(rows), C') the estimate at ``rows`` (grey: mean over channels). Returns (dA (len(rows), N) float32
-    per channel-mean, or None when no cell is seen) and a summary dict."""
-    pn = parts["pixel_node"][rows]
+    per channel-mean, or None when no node is seen) and a summary dict."""
     old = parts["node_rho"].mean(axis=1).astype(np.float64)
-    seen = (pn >= 0)
-    free = parts["node_unknown"]
-    grey = np.asarray(rho, np.float64).reshape(rows.size, -1).mean(axis=1)
     n_nodes = old.size
+    free = parts["node_unknown"] & (old > 0)
+    grey = np.asarray(rho, np.float64).reshape(rows.size, -1).mean(axis=1)
+    # the node each pixel sees: a plane cell, else (transports built before pixel_object_node: none) an object node
+    pn = parts["pixel_node"][rows].copy()
+    if "pixel_object_node" in parts:
+        po = parts["pixel_object_node"][rows]
+        pn = np.where(pn >= 0, pn, po)
+    is_object = parts["node_object"] if "node_object" in parts else np.zeros(n_nodes, bool)
+    seen = pn >= 0
     cnt = np.bincount(pn[seen], minlength=n_nodes)
     tot = np.bincount(pn[seen], weights=grey[seen], minlength=n_nodes)
-    upd = (cnt > 0) & free & (old > 0)
+    upd = (cnt > 0) & free
     if not upd.any():
         return None, {"cells_updated": 0}
     new = old.copy()
     new[upd] = np.clip(tot[upd] / cnt[upd], rho_min, 1.0)
-    # free cells no pixel sees (beside and behind the object, outside the view) light the object too: left at the
-    # transport's guessed albedo they bias every known pixel's light, so they take the seen cells' mean estimate
-    # (count-weighted: the mean albedo over the pixels that see the support)
-    unseen = (cnt == 0) & free & (old > 0)
-    fill = float(np.clip(tot[upd].sum() / cnt[upd].sum(), rho_min, 1.0))
-    new[unseen] = fill
+    # free nodes no pixel sees (support cells beside and behind the object or outside the view, the object's far
+    # side) light the scene too: left at the transport's guessed albedo they bias every pixel's indirect light, so
+    # they take the seen nodes' mean estimate over the same surface (count-weighted: the mean albedo over the pixels
+    # that see it)
+    unseen = (cnt == 0) & free
+    fills = {}
+    for name, kind in (("support", ~is_object), ("object", is_object)):
+        sk, uk = upd & kind, unseen & kind
+        if sk.any() and uk.any():
+            fills[name] = float(np.clip(tot[sk].sum() / cnt[sk].sum(), rho_min, 1.0))
+            new[uk] = fills[name]
+        else:
+            unseen &= ~kind  # nothing of that surface seen: its unseen nodes keep the guess
     changed = upd | unseen
     scale = np.ones(n_nodes)
     scale[changed] = new[changed] / old[changed]
@@ -652,6 +684,17 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
         # the two propagations are independent sparse products (scipy releases the GIL): one per core
         lit, base = parallel_map(lambda sc, c=c: _node_light(parts, sc, c, np.float32), [scale, np.ones(n_nodes)])
         dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ (lit - base)) / C
-    return dA, {"cells_updated": int(upd.sum()), "cell_albedo_before": float(np.mean(old[upd])),
-                "cell_albedo_after": float(np.mean(new[upd])), "cells_unseen_filled": int(unseen.sum()),
-                "unseen_cell_albedo": fill}
+    sup = upd & ~is_object
+    info = {"cells_updated": int(sup.sum()), "object_nodes_updated": int((upd & is_object).sum()),
+            "cells_unseen_filled": int((unseen & ~is_object).sum()),
+            "object_nodes_unseen_filled": int((unseen & is_object).sum())}
+    if sup.any():
+        info.update(cell_albedo_before=float(np.mean(old[sup])), cell_albedo_after=float(np.mean(new[sup])))
+    if (upd & is_object).any():
+        info.update(object_albedo_before=float(np.mean(old[upd & is_object])),
+                    object_albedo_after=float(np.mean(new[upd & is_object])))
+    if "support" in fills:
+        info["unseen_cell_albedo"] = fills["support"]
+    if "object" in fills:
+        info["unseen_object_albedo"] = fills["object"]
+    return dA, info

@@ -22,8 +22,7 @@ from objcam.solvers.plan.params import SolveParams
 from objcam.transport.gather import bounce_delta
 
 
-def solve_with_refits(cams: list[dict], comp, grid: EnvGrid, setup: JointSetup, params: SolveParams, sigma,
-                      unconstrained: bool):
+def solve_with_refits(cams: list[dict], comp, grid: EnvGrid, setup: JointSetup, params: SolveParams, sigma):
     """The joint solve of the cameras ``cams`` (objcam.solvers.plan.unknown.camera_blocks; their A' is replaced
     in place by each refit) at ``setup``, with ``params.bounce_refits`` refits where the transport gathered the
     interreflections. Returns (JointResult, the auto_reg record or None, one record per refit and camera)."""
@@ -35,7 +34,10 @@ def solve_with_refits(cams: list[dict], comp, grid: EnvGrid, setup: JointSetup, 
                                   c["fixed"]) for c, r in zip(cams, rho)], grid, comp.texel_index, stp, sigma=sigma)
 
     t0 = time.perf_counter()
-    refit_next = (params.bounce_refits > 0 and params.method == "exact" and not unconstrained
+    # also when the envmap is unconstrained: its shape comes from the priors, but the refit makes A's
+    # interreflections reflect the surfaces at the albedo the solve writes, so that a renderer given the solve's
+    # albedo and envmap (objcam export) reproduces its prediction (issue 23)
+    refit_next = (params.bounce_refits > 0 and params.method == "exact"
                   and any(c["tr"].has_bounce_parts for c in cams))
     # a bounce refit follows: the first solve only has to get the albedo close (its final decimals are redone), so
     # it stops early, with the quadratic prior (one factorisation per channel serves every target, no

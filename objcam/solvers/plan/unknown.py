@@ -73,15 +73,15 @@ def solve_unknown(scene, data: dict[str, TargetData], params: SolveParams, comp,
     L = len(comp.illuminations)
     # one illumination and no pixel of known albedo: every pixel's albedo can explain its value alone, so the data
     # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
-    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); no refit then (it measured
-    # +12 s there for nothing)
+    # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); the bounce refit still runs
+    # (objcam.solvers.plan.bounce: the export's render must match the prediction)
     unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
     # the albedo's TV step and the envmaps at that albedo follow the joint solve (objcam.solvers.plan.final)
     with_final = (params.final_envmap == "known" and params.method == "exact" and params.prior == "edges"
                   and not unconstrained)
     setup, conv, ls_source, sigma = joint_setup(scene, data, params, cams, L, with_final)
     t0 = time.perf_counter()
-    res, auto, refits = solve_with_refits(cams, comp, grid, setup, params, sigma, unconstrained)
+    res, auto, refits = solve_with_refits(cams, comp, grid, setup, params, sigma)
     final_info, solved = None, None
     if with_final and not res.diverged:
         # the albedo's edge-preserving step and each envmap once more by the known-albedo solver
