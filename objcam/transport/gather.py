@@ -646,12 +646,9 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
     n_nodes = old.size
     free = parts["node_unknown"] & (old > 0)
     grey = np.asarray(rho, np.float64).reshape(rows.size, -1).mean(axis=1)
-    # the node each pixel sees: a plane cell, else (transports built before pixel_object_node: none) an object node
-    pn = parts["pixel_node"][rows].copy()
-    if "pixel_object_node" in parts:
-        po = parts["pixel_object_node"][rows]
-        pn = np.where(pn >= 0, pn, po)
-    is_object = parts["node_object"] if "node_object" in parts else np.zeros(n_nodes, bool)
+    # the node each pixel sees: a plane cell, else an object node
+    pn = np.where(parts["pixel_node"][rows] >= 0, parts["pixel_node"][rows], parts["pixel_object_node"][rows])
+    is_object = parts["node_object"]
     seen = pn >= 0
     cnt = np.bincount(pn[seen], minlength=n_nodes)
     tot = np.bincount(pn[seen], weights=grey[seen], minlength=n_nodes)
@@ -684,15 +681,14 @@ def bounce_delta(parts: dict, rho: np.ndarray, rows: np.ndarray, rho_min: float 
         # the two propagations are independent sparse products (scipy releases the GIL): one per core
         lit, base = parallel_map(lambda sc, c=c: _node_light(parts, sc, c, np.float32), [scale, np.ones(n_nodes)])
         dA += np.asarray(_csr(parts, f"W_pix{c}")[rows] @ (lit - base)) / C
-    sup = upd & ~is_object
-    info = {"cells_updated": int(sup.sum()), "object_nodes_updated": int((upd & is_object).sum()),
+    sup, obj = upd & ~is_object, upd & is_object
+    info = {"cells_updated": int(sup.sum()), "object_nodes_updated": int(obj.sum()),
             "cells_unseen_filled": int((unseen & ~is_object).sum()),
             "object_nodes_unseen_filled": int((unseen & is_object).sum())}
     if sup.any():
         info.update(cell_albedo_before=float(np.mean(old[sup])), cell_albedo_after=float(np.mean(new[sup])))
-    if (upd & is_object).any():
-        info.update(object_albedo_before=float(np.mean(old[upd & is_object])),
-                    object_albedo_after=float(np.mean(new[upd & is_object])))
+    if obj.any():
+        info.update(object_albedo_before=float(np.mean(old[obj])), object_albedo_after=float(np.mean(new[obj])))
     if "support" in fills:
         info["unseen_cell_albedo"] = fills["support"]
     if "object" in fills:
