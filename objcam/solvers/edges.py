@@ -45,8 +45,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from objcam.solvers.basis import group_sizes, merge_gram
+from objcam.solvers.lowrank import gram_lowrank
 from objcam.solvers.multilevel import MIN_UNKNOWNS, aggregates
-from objcam.solvers.nnls import SolveResult, solve_exact
+from objcam.solvers.nnls import PCG_MIN_UNKNOWNS, SolveResult, solve_exact
 from objcam.solvers.regularization import regularized_gram
 
 
@@ -88,6 +89,16 @@ def tone_weights(M: sp.csr_matrix, X: np.ndarray, tone: float, floor: float) -> 
         return np.ones(M.shape[0])
     b = (m / (xm + floor * m)) ** tone
     return b / b.mean()
+
+
+def _split(G: np.ndarray, Dw: sp.spmatrix, ls: float, lr: np.ndarray) -> tuple | None:
+    """``(S, V, lam)`` for objcam.solvers.nnls.solve_exact's PCG free blocks: the step's sparse part ``S = ls Dw^T
+    Dw + diag(lr)`` of Q and the data Gram's low-rank bound (objcam.solvers.lowrank, once per Gram); None below
+    PCG_MIN_UNKNOWNS, where Cholesky is as fast."""
+    if G.shape[0] < PCG_MIN_UNKNOWNS:
+        return None
+    S = sp.csr_matrix(ls * (Dw.T @ Dw) + sp.diags(np.broadcast_to(lr, (G.shape[0],)).astype(float)))
+    return (S, *gram_lowrank(G))
 
 
 def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: Sequence[Sequence[int]],
@@ -162,7 +173,10 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
             Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
-            res = solve(Q, B, passive0=passive[b], coarse=coarse) if solve is solve_exact else solve(Q, B)
+            if solve is solve_exact:
+                res = solve(Q, B, passive0=passive[b], coarse=coarse, split=_split(G, Dw, ls_abs, lr_abs * ridge_w))
+            else:
+                res = solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0
             results.append(res)

@@ -1,0 +1,79 @@
+"""A low-rank lower bound of a data Gram matrix, for preconditioning the exact solves (objcam.solvers.nnls).
+
+The exact solves of the reweighted priors (objcam.solvers.edges) see ``Q = G + S`` with G = A^T A dense and the
+same at every reweighting step, and S = ls D^T W D + diag(lr) sparse and new at every step. For a diffuse scene
+G's spectrum decays fast (64 x 128 forest: the 100th eigenvalue is 3% of G's mean diagonal, the 300th 0.5%), so
+``P = S + V diag(lam) V^T`` with G's dominant k eigenpairs follows W exactly and leaves ``Q - P`` small: PCG on a
+free block ``Q_FF`` preconditioned by ``P_FF`` (Woodbury: a sparse factorisation of S_FF and a k x k matrix)
+needs a handful of iterations where the previous step's factor needed 67-178 (bench/results.md, issue 26).
+
+The pairs come from a randomized Nystrom approximation (Halko, Martinsson & Tropp 2011; the stable form of Tropp,
+Yurtsever, Udell & Cevher 2017): ``G_nys = (G O)(O^T G O)^+ (G O)^T`` with O an orthonormal basis of G^q times a
+Gaussian matrix. In exact arithmetic ``G - G_nys`` is positive semi-definite, so ``P <= Q`` and the eigenvalues
+of ``P^-1 Q`` are >= 1: PCG's error is set by how far G's spectrum beyond k sits above S's.
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+
+import numpy as np
+from scipy.linalg import cholesky, solve_triangular
+
+#: fewest pairs kept; the rank is sqrt(N) above it (:func:`rank`)
+MIN_RANK = 32
+#: oversampling and power iterations of the range finder (a fixed seed: the same G gives the same pairs)
+OVERSAMPLE = 16
+POWER = 2
+
+_cache: dict[int, tuple] = {}
+_lock = threading.Lock()
+
+
+def rank(n: int) -> int:
+    """The Nystrom rank for N unknowns: sqrt(N), where a preconditioner set-up's |F| k^2 capacitance product
+    costs about one N^2 product with Q (a PCG iteration); at least MIN_RANK. At 64 x 128 (3,131 unknowns, k 56)
+    that is where the measured time was least (k 32 / 64 / 128 / 256: 91 / 62 / 40 / 28 iterations, bench/results.md
+    issue 26 session 18)."""
+    return max(MIN_RANK, int(round(np.sqrt(n))))
+
+
+def nystrom(G: np.ndarray, k: int | None = None, power: int = POWER, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(V (N, r), lam (r,)): ``V diag(lam) V^T`` a rank-r (r <= k) Nystrom approximation of the symmetric PSD G
+    (N, N) from below, V orthonormal, lam >= 0 descending; k None: :func:`rank`. Cost ~2 (power + 1) N^2 (k + OVERSAMPLE) flops."""
+    n = G.shape[0]
+    k = rank(n) if k is None else k
+    m = min(n, k + OVERSAMPLE)
+    rng = np.random.default_rng(seed)
+    Om = np.linalg.qr(rng.standard_normal((n, m)))[0]
+    for _ in range(power):  # subspace iteration: the range of G^q O follows the dominant eigenvectors
+        Om = np.linalg.qr(G @ Om)[0]
+    Y = G @ Om
+    # the stable Nystrom form: shift by nu so that O^T Y_nu is safely positive definite, remove it afterwards
+    nu = np.sqrt(n) * np.finfo(float).eps * max(float(np.linalg.norm(Y, 2)), 1e-300)
+    Ynu = Y + nu * Om
+    C = cholesky(Om.T @ Ynu, lower=False, check_finite=False)
+    Bm = solve_triangular(C, Ynu.T, trans="T", lower=False, check_finite=False).T  # Y_nu C^-1
+    V, sig, _ = np.linalg.svd(Bm, full_matrices=False)
+    lam = np.maximum(sig * sig - nu, 0.0)
+    r = min(k, int(np.count_nonzero(lam > 0)))
+    return np.ascontiguousarray(V[:, :r]), lam[:r].copy()
+
+
+def gram_lowrank(G: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`nystrom` of G, computed once per array object (the luminance and chroma solves and every reweighting
+    step share one merged Gram); the entry is dropped with the array."""
+    key = id(G)
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0]() is G and hit[1] == k:
+            return hit[2]
+    out = nystrom(G, k)
+    with _lock:
+        try:
+            ref = weakref.ref(G, lambda _r, key=key: _cache.pop(key, None))
+        except TypeError:  # not weak-referenceable: no caching
+            return out
+        _cache[key] = (ref, k, out)
+    return out
