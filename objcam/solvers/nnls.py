@@ -173,6 +173,7 @@ class _Stats:
     pcg_blocks: int = 0  # free blocks solved by PCG (_PCGFree)
     pcg_fallbacks: int = 0  # of them, handed to Cholesky when PCG stalled
     cg_iterations: int = 0
+    pcg_tightened: int = 0  # columns re-solved to PCG_SLACK after a loose round showed nothing infeasible
 
 
 def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
@@ -286,6 +287,10 @@ PCG_MIN_BLOCK = 256
 #: PCG stops when every free gradient entry is below this fraction of the pivoting's tolerance tg (so the
 #: pivoting's sign tests see the block's exact solution), and gives the block to Cholesky after PCG_MAX_IT
 PCG_SLACK = 1e-2
+#: the rounds before the pivoting's last stop PCG at this multiple of tg: their free sets are guesses that the
+#: next exchange corrects, so a rough solution serves (a round that finds nothing infeasible is redone to
+#: PCG_SLACK and checked again: the answer is the same)
+PCG_LOOSE = 1e4
 PCG_MAX_IT = 60
 
 
@@ -314,7 +319,10 @@ class _PCGFree:
         c = np.maximum(np.diag(Q) - S.diagonal() - (self.V * self.V) @ self.lam, 0.0)
         self.M = sp.csc_matrix(S + sp.diags(c))
         self.first = True  # until a first call leaves X and G consistent (G = Q X - B)
+        self.loose = PCG_LOOSE > PCG_SLACK  # rounds before the pivoting's last are solved to PCG_LOOSE tg
+        self.rough = np.zeros(B.shape[1], dtype=bool)  # columns whose last solve was loose
         self._cols: list[int] = []
+        self._precs: dict[bytes, object] = {}
 
     def _preconditioner(self, idx: np.ndarray):
         """z = P_FF^-1 r for r (|F|, m): Woodbury on the free rows."""
@@ -362,11 +370,14 @@ class _PCGFree:
         for idx, group in blocks:
             spans.append((idx, slice(j, j + len(group))))
             j += len(group)
-        precs = [self._preconditioner(idx) for idx, _ in blocks]
-        lim = PCG_SLACK * self.tg[cols]  # (m,)
+        lim = (PCG_LOOSE if self.loose else PCG_SLACK) * self.tg[cols]  # (m,)
         mask = np.zeros(X0.shape, dtype=bool)
         for idx, sl in spans:
             mask[idx, sl] = True
+        # a block's preconditioner is kept for the next call (the tightening re-solve of the same free set)
+        keys = [np.packbits(mask[:, sl.start]).tobytes() for _, sl in spans]
+        precs = [self._precs.get(key) or self._preconditioner(idx) for key, (idx, _) in zip(keys, blocks)]
+        self._precs = dict(zip(keys, precs))
         Xn, QX = X0.copy(), QX.copy()
         R = np.where(mask, self.B[:, cols] - QX, 0.0)  # the residual on each column's free rows, 0 off them
 
@@ -401,6 +412,18 @@ class _PCGFree:
         done = ~live | (np.max(np.abs(R), axis=0) <= lim)
         return Xn, QX, done
 
+    def tighten(self, F: np.ndarray, cols, X: np.ndarray, G: np.ndarray) -> bool:
+        """Re-solve to PCG_SLACK tg the columns among ``cols`` whose last solve was loose (warm: a few
+        iterations); True when there were any (the pivoting then checks them again)."""
+        redo = [int(c) for c in cols if self.rough[c]]
+        if not redo:
+            return False
+        self.loose = False
+        self(F, redo, X, G)
+        self.loose = True
+        self.stats.pcg_tightened += len(redo)
+        return True
+
     def __call__(self, F: np.ndarray, cols, X: np.ndarray, G: np.ndarray) -> None:
         if len(cols) == 0:
             return
@@ -413,6 +436,7 @@ class _PCGFree:
             (blocks if idx.size >= PCG_MIN_BLOCK else small).append((idx, group))
         for _, group in small:  # small free blocks: a Cholesky each is cheaper
             _solve_free(self.Q, self.B, F, group, X, G, self.stats)
+            self.rough[group] = False
         if not blocks:
             self.first = False
             return
@@ -426,12 +450,14 @@ class _PCGFree:
             X0, QX = self._start(X[:, allc], G[:, allc], Fm)
         Xn, QX, done = self._pcg(blocks, X0, QX)
         self.first = False
+        self.rough[allc] = self.loose
         X[:, allc] = Xn
         G[:, allc] = QX - self.B[:, allc]
         if not done.all():  # PCG stalled on these columns: their blocks by Cholesky
             bad = [c for c, o in zip(allc, done) if not o]
             self.stats.pcg_fallbacks += len(bad)
             _solve_free(self.Q, self.B, F, bad, X, G, self.stats)
+            self.rough[bad] = False
 
 
 def _pivot(Q, B, F, X, G, tg, tx, cols, max_iter, stats: _Stats, free=None) -> tuple[int, bool]:
@@ -447,6 +473,8 @@ def _pivot(Q, B, F, X, G, tg, tx, cols, max_iter, stats: _Stats, free=None) -> t
         nv = V.sum(axis=0)
         todo = np.flatnonzero(nv > 0)
         if todo.size == 0:
+            if getattr(free, "tighten", None) is not None and free.tighten(F, cols, X, G):
+                continue  # the free blocks were solved loosely: check their exact solutions
             return steps, True
         if steps >= max_iter:
             return steps, False
@@ -608,7 +636,8 @@ def solve_exact(
             "largest_block": stats.largest_block,
             "schur": bool(live.size and use_schur),
             **({"pcg_blocks": stats.pcg_blocks, "pcg_fallbacks": stats.pcg_fallbacks,
-                "cg_iterations": stats.cg_iterations, "pcg_restarts": restarts} if use_pcg else {}),
+                "cg_iterations": stats.cg_iterations, "pcg_tightened": stats.pcg_tightened,
+                "pcg_restarts": restarts} if use_pcg else {}),
             "fixed_zero_variables": int(dead.sum()),
             "active": [int(v) for v in (X <= 0).sum(axis=0)],
             **({"coarse_start_seconds": round(t_coarse, 4)} if t_coarse is not None else {}),
