@@ -73,27 +73,29 @@ def _as_2d(B: np.ndarray) -> np.ndarray:
     return B
 
 
-def objective(Q: np.ndarray, B: np.ndarray, X: np.ndarray, yTy: np.ndarray | float | None = None) -> np.ndarray:
+def objective(Q: np.ndarray, B: np.ndarray, X: np.ndarray, yTy: np.ndarray | float | None = None,
+              QX: np.ndarray | None = None) -> np.ndarray:
     """Objective per column from the Gram form: ``x^T Q x - 2 b^T x + y^T y``.
 
     With ``Q = A^T A + ls D^T D + lr I``, ``B = A^T Y`` and ``yTy = ||y||^2`` per column (C,) this equals
     ``||A x - y||^2 + ls ||D x||^2 + lr ||x||^2``. ``yTy=None`` drops the constant. Returns (C,) float64.
+    ``QX``: Q X when the caller has it (one product with Q fewer).
     """
     B2, X2 = _as_2d(B), _as_2d(X)
-    val = np.einsum("ic,ic->c", X2, Q @ X2) - 2.0 * np.einsum("ic,ic->c", B2, X2)
+    val = np.einsum("ic,ic->c", X2, Q @ X2 if QX is None else QX) - 2.0 * np.einsum("ic,ic->c", B2, X2)
     if yTy is not None:
         val = val + np.asarray(yTy, dtype=np.float64)
     return val
 
 
-def kkt_residual(Q: np.ndarray, B: np.ndarray, X: np.ndarray) -> np.ndarray:
+def kkt_residual(Q: np.ndarray, B: np.ndarray, X: np.ndarray, QX: np.ndarray | None = None) -> np.ndarray:
     """Relative KKT residual per column (C,): ``max_i |min(Q_ii x_i, g_i)| / max_i |b_i|`` with ``g = Q x - b``.
 
     Zero exactly at the minimiser of ``0.5 x^T Q x - b^T x`` over ``x >= 0`` (x >= 0 is assumed; a negative
-    entry counts through ``Q_ii x_i``). A column with ``b = 0`` is scaled by 1.
+    entry counts through ``Q_ii x_i``). A column with ``b = 0`` is scaled by 1. ``QX``: Q X when the caller has it.
     """
     B2, X2 = _as_2d(B), _as_2d(X)
-    G = Q @ X2 - B2
+    G = (Q @ X2 if QX is None else QX) - B2
     d = np.diag(Q)[:, None]
     nat = np.abs(np.minimum(d * X2, G))
     # A negative x is infeasible whatever the gradient says.
@@ -564,6 +566,7 @@ def solve_exact(
     converged = True
     use_schur = use_pcg = False
     restarts = 0
+    QX = None
     with single_blas_thread():
         if live.size:
             Ql = Q if live.size == n else Q[np.ix_(live, live)]
@@ -593,12 +596,14 @@ def solve_exact(
                 pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats)
                 pcg(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=pcg)
-                if converged and float(kkt_residual(Ql, Bl, np.maximum(Xl, 0.0)).max()) > tol:
+                QX = Ql @ np.maximum(Xl, 0.0)  # the final check's product, kept for the KKT and objective below
+                if converged and float(kkt_residual(Ql, Bl, np.maximum(Xl, 0.0), QX=QX).max()) > tol:
                     # what PCG left above tol (not seen on the bench's solves): Cholesky blocks from its free set
                     restarts += 1
                     _solve_free(Ql, Bl, F, allc, Xl, Gl, stats)
                     it2, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats)
                     it += 1 + it2
+                    QX = None
             elif use_schur:
                 free = _SchurFree(Ql, Bl, stats)
                 limit = live.size // 3
@@ -620,8 +625,9 @@ def solve_exact(
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats)
             iters = 1 + it
             X[live] = np.maximum(Xl, 0.0)
-        kkt = kkt_residual(Q, B2, X)
-        obj = objective(Q, B2, X)
+        QX = QX if use_pcg and live.size == n else None
+        kkt = kkt_residual(Q, B2, X, QX=QX)
+        obj = objective(Q, B2, X, QX=QX)
     return SolveResult(
         x=X,
         iterations=iters,
