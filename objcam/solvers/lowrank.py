@@ -34,8 +34,8 @@ _lock = threading.Lock()
 def rank(n: int) -> int:
     """The Nystrom rank for N unknowns: sqrt(N), where a preconditioner set-up's |F| k^2 capacitance product
     costs about one N^2 product with Q (a PCG iteration); at least MIN_RANK. At 64 x 128 (3,131 unknowns, k 56)
-    that is where the measured time was least (k 32 / 64 / 128 / 256: 91 / 62 / 40 / 28 iterations, bench/results.md
-    issue 26 session 18)."""
+    that is near the least measured time (k 32 / 64 / 128 / 256: 91 / 62 / 40 / 28 iterations, 1.34 / 0.92 / 0.94
+    / 1.08 CPU s on one solve; bench/results.md, issue 26 session 18)."""
     return max(MIN_RANK, int(round(np.sqrt(n))))
 
 

@@ -282,9 +282,12 @@ class _SchurFree:
             G[:, group] = Gg
 
 
-#: fewest unknowns for which the reweighted solves (objcam.solvers.edges) pass ``split`` and use PCG free blocks
+#: fewest unknowns for which the reweighted solves (objcam.solvers.edges) pass ``split`` and use PCG free blocks:
+#: at 32 x 64 (804 unknowns) the Cholesky path took 0.04-0.06 CPU s per solve against 0.07-0.13 by PCG, at
+#: 64 x 128 (3,131) 1.1-3.4 s against 0.3-0.8 s (bench/results.md, issue 26 session 18)
 PCG_MIN_UNKNOWNS = 1024
-#: fewest free variables for which a free block is solved by PCG (below it a Cholesky of the block is cheaper)
+#: fewest free variables for which a free block is solved by PCG (below it a Cholesky of the block is cheap;
+#: not tuned: the bench's blocks at 64 x 128 are 1,000-2,700)
 PCG_MIN_BLOCK = 256
 #: PCG stops when every free gradient entry is below this fraction of the pivoting's tolerance tg (so the
 #: pivoting's sign tests see the block's exact solution), and gives the block to Cholesky after PCG_MAX_IT
