@@ -91,6 +91,18 @@ def test_a_stalled_pcg_block_is_solved_by_cholesky(prob, monkeypatch):
     assert np.all(r.kkt_residual <= KKT_TOL) and _close(r.x, ref.x)
 
 
+def test_a_failed_preconditioner_falls_back_to_cholesky(prob, monkeypatch):
+    D, Q, B, G, S, ls, lr, ref = prob
+
+    def singular(self, idx):
+        raise RuntimeError("Factor is exactly singular")
+
+    monkeypatch.setattr(nnls._PCGFree, "_preconditioner", singular)
+    r = solve_exact(Q, B, split=(S, *gram_lowrank(G)))
+    assert r.info["pcg_fallbacks"] > 0 and r.info["factorizations"] > 0
+    assert np.all(r.kkt_residual <= KKT_TOL) and _close(r.x, ref.x)
+
+
 def test_an_answer_above_tol_is_finished_by_cholesky(prob, monkeypatch):
     """The final KKT check: PCG stopped far too early (slack 1e6 tg) leaves the pivoting's answer above tol;
     the solve goes on from its free set with Cholesky blocks and ends exact."""

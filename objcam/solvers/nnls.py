@@ -453,7 +453,14 @@ class _PCGFree:
             QX = self._product(X0)
         else:
             X0, QX = self._start(X[:, allc], G[:, allc], Fm)
-        Xn, QX, done = self._pcg(blocks, X0, QX)
+        try:
+            Xn, QX, done = self._pcg(blocks, X0, QX)
+        except (RuntimeError, np.linalg.LinAlgError):  # a singular (S + c)_FF or capacitance: Cholesky blocks
+            self.stats.pcg_fallbacks += len(allc)
+            _solve_free(self.Q, self.B, F, allc, X, G, self.stats)
+            self.rough[allc] = False
+            self.first = False
+            return
         self.first = False
         self.rough[allc] = self.loose
         X[:, allc] = Xn
