@@ -163,6 +163,36 @@ def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None) -
     return rows
 
 
+def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
+    """The rule of ``transport.env_height=auto`` (objcam.transport.resolution.choose_height's per-target part:
+    target_fit and walk, with the stage's noise) run on the fixed-height runs' transports, which are the A's the
+    stage would build (same settings and seed). Returns a record shaped like the stage's."""
+    from objcam.schemas.artifacts import SceneArtifact
+    from objcam.transport import load_transport, pool_target
+    from objcam.transport.auto import absolute_noise
+    from objcam.transport.resolution import Z, target_fit, walk
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    art = SceneArtifact.load(next(iter(works.values())) / "scene")
+    targets = {t.name: t for t in art.targets}
+    out = {}
+    for h in hdris:
+        t = targets[h]
+        fits, sigma_abs, rel = {}, None, None
+        for height, work in sorted(works.items()):
+            tr = load_transport(work / "transport", h)
+            img, ok = pool_target(t.load_image(art.folder), t.load_valid(art.folder), tr.downsample)
+            rel = t.noise_sigma / tr.downsample
+            sigma_abs = absolute_noise(tr.pixels_of(img)[tr.pixels_of(ok[..., None]).ravel()], rel)
+            fits[height] = target_fit(tr, img, ok, rel)
+        chosen, steps = walk(fits, sigma_abs)
+        out[h] = {"height": chosen, "noise_rel": rel, "steps": steps}
+    return {"record": {"height": max(v["height"] for v in out.values()), "targets": out, "z": Z, "refused": {},
+                       "from": "fixed-height transports"},
+            "wall_seconds": round(time.perf_counter() - t0, 1), "cpu_seconds": round(time.process_time() - c0, 1),
+            "peak_rss_mb": None, "load": os.getloadavg()[0]}
+
+
 def run_auto(cap: Path, work: Path) -> dict:
     """``transport.env_height=auto`` up to the transport: its record (objcam.transport.resolution)."""
     from objcam.pipeline.engine import Pipeline
@@ -172,7 +202,7 @@ def run_auto(cap: Path, work: Path) -> dict:
     trec = json.loads((work / "transport" / "stage.json").read_text())
     rec = trec["metrics"]["env_height_auto"]
     return {"record": rec, "wall_seconds": round(time.perf_counter() - t0, 1),
-            "cpu_seconds": trec["metrics"].get("cpu_seconds"), "peak_rss_mb": trec.get("peak_rss_mb"),
+            "cpu_seconds": rec.get("cpu_seconds"), "peak_rss_mb": trec.get("peak_rss_mb"),
             "load": trec.get("load_average")}
 
 
@@ -228,9 +258,11 @@ def markdown(rows: list[dict], refused: dict, autos: dict, args, hdris, noises) 
             ok = mine is not None and fixed[best] - mine <= 0.02
             lines.append(f"| {noise:g} | {h} | {t['height']} | {steps} | {f(mine)} | {f(fixed[best])} ({best}) | "
                          f"{'yes' if ok else 'no'} |")
-        lines.append(f"| {noise:g} | (capture) | {au['record']['height']} | transport with auto: {au['wall_seconds']:.0f}"
-                     f" s wall, {f(au['cpu_seconds'], '.0f')} s CPU, peak {f(au['peak_rss_mb'], '.0f')} MB, load "
-                     f"{f(au['load'], '.1f')}; refused: {'; '.join(f'{k}: {v}' for k, v in au['record']['refused'].items()) or 'none'} ||||")
+        how = ("the rule on the fixed-height runs' A" if au["record"].get("from") else "transport with auto")
+        refused_txt = "; ".join(f"{k}: {v}" for k, v in au["record"]["refused"].items()) or "as above"
+        lines.append(f"| {noise:g} | (capture) | {au['record']['height']} | {how}: {au['wall_seconds']:.0f} s wall, "
+                     f"{f(au['cpu_seconds'], '.0f')} s CPU, peak {f(au['peak_rss_mb'], '.0f')} MB, load "
+                     f"{f(au['load'], '.1f')}; refused: {refused_txt} ||||")
     return "\n".join(lines)
 
 
@@ -244,7 +276,11 @@ def main(argv=None) -> int:
     ap.add_argument("--heights", default="32,64,128")
     ap.add_argument("--spp", type=int, default=4096)
     ap.add_argument("--max-seconds", type=float, default=600.0, help="refuse heights planned past this (budget)")
-    ap.add_argument("--no-auto", action="store_true")
+    ap.add_argument("--auto", choices=("fixed", "stage", "none"), default="fixed",
+                    help="env_height=auto's choice: 'fixed' runs its rule on the fixed-height runs' A (the same A "
+                         "the stage builds), 'stage' runs the transport stage with env_height=auto (A built again)")
+    ap.add_argument("--reuse", action="store_true", help="take a noise level's rows from OUT/rows-NOISE.json when "
+                    "there (two levels run as two processes, then merged)")
     args = ap.parse_args(argv)
     args.argv = argv
     os.environ.setdefault("OBJCAM_QUIET", "1")
@@ -252,12 +288,20 @@ def main(argv=None) -> int:
     noises = [float(v) for v in args.noise.split(",") if v]
     heights = sorted(int(v) for v in args.heights.split(",") if v)
     args.out.mkdir(parents=True, exist_ok=True)
-    renders = clean_renders(args.out, hdris, args.spp)
+    renders = None if args.reuse and all((args.out / f"rows-{n:g}.json").is_file() for n in noises) else \
+        clean_renders(args.out, hdris, args.spp)
     refused = {h: why for h in heights if (why := refusal(h, args.max_seconds))}
     rows, autos = [], {}
     from objcam.envmap import read_latlong_mask
 
     for noise in noises:
+        saved = args.out / f"rows-{noise:g}.json"
+        if args.reuse and saved.is_file():  # measured by an earlier (or a parallel) run: merged, not rerun
+            d = json.loads(saved.read_text())
+            rows += d["rows"]
+            if d.get("auto"):
+                autos[noise] = d["auto"]
+            continue
         cap = noisy_capture(args.out, renders, hdris, noise)
         mask32 = None
         for height in [h for h in heights if h not in refused]:
@@ -267,20 +311,23 @@ def main(argv=None) -> int:
                 rows.append(r | {"noise": noise})
             if mask32 is None:
                 mask32 = {h: read_latlong_mask(work / "solve" / h / "envmap_mask.png") for h in hdris}
-        if not args.no_auto:
+        if args.auto == "stage":
             log(f"  noise {noise:g}: env_height=auto")
             autos[noise] = run_auto(cap, args.out / "work" / f"n{noise:g}-auto")
-        (args.out / "rows.json").write_text(json.dumps({"rows": rows, "refused": refused,
-                                                        "auto": {str(k): v for k, v in autos.items()}},
-                                                       indent=1, default=float))
+        elif args.auto == "fixed":
+            works = {h: args.out / "work" / f"n{noise:g}-h{h}" for h in heights if h not in refused}
+            autos[noise] = auto_from_fixed(cap, works, hdris)
+        mine = [r for r in rows if r["noise"] == noise]
+        (args.out / f"rows-{noise:g}.json").write_text(json.dumps({"rows": mine, "auto": autos.get(noise)},
+                                                                  indent=1, default=float))
     report = markdown(rows, refused, autos, args, hdris, noises)
     print(report)
     if args.write:
         write_section("resolution", report, TITLE, args.results)
-        tmp = Path("bench/resolution_rows.json.tmp")
+        tmp = args.results.parent / "resolution_rows.json.tmp"  # beside results.md
         tmp.write_text(json.dumps({"rows": rows, "refused": {str(k): v for k, v in refused.items()},
                                    "auto": {str(k): v for k, v in autos.items()}}, indent=1, default=float))
-        tmp.replace("bench/resolution_rows.json")
+        tmp.replace(args.results.parent / "resolution_rows.json")
     return 0
 
 

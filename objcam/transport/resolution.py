@@ -170,6 +170,7 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
     from objcam.transport.pixels import pool_target
     from objcam.transport.storage import load_group
 
+    c0 = time.process_time()
     pixels = [e["pixels"] for e in estimates(min(params.env_height_candidates))]
     desc = art.description
     heights, refused = affordable(params.env_height_candidates, pixels, desc.support_is_plane,
@@ -190,8 +191,10 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
         folder = out / f"h{h}"
         shutil.rmtree(folder, ignore_errors=True)
         built[h] = build(h, folder)
+        loaded: dict = {}  # one A per camera, shared by its targets
         for t in targets:
-            tr = load_group(folder / built[h][1][t.name])
+            sub = built[h][1][t.name]
+            tr = loaded[sub] if sub in loaded else loaded.setdefault(sub, load_group(folder / sub))
             if t.name not in images:  # the pooled photo and its noise, once per target
                 img, ok = pool_target(t.load_image(art.folder), t.load_valid(art.folder), tr.downsample)
                 rel = (t.noise_sigma / tr.downsample if t.noise_sigma is not None
@@ -200,7 +203,7 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
                 noise[t.name] = (float(rel), absolute_noise(tr.pixels_of(img)[tr.pixels_of(ok[..., None]).ravel()],
                                                             rel))
             fits.setdefault(t.name, {})[h] = target_fit(tr, *images[t.name], noise[t.name][0])
-            del tr
+        del loaded, tr
         seconds[h] = round(time.perf_counter() - t0, 3)
         walked = {n: walk(f, noise[n][1]) for n, f in fits.items()}
         if len(fits[targets[0].name]) > 1 and all(c < h for c, _ in walked.values()):
@@ -224,4 +227,5 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
     return chosen, {"height": chosen, "reason": reason, "candidates": list(params.env_height_candidates),
                     "built": tried, "refused": {str(h): r for h, r in refused.items()}, "z": Z,
                     "targets": per_target, "seconds_per_height": {str(h): s for h, s in seconds.items()},
+                    "cpu_seconds": round(time.process_time() - c0, 3),  # this process, every build and fit
                     "_built": (per_cam, mapping)}
