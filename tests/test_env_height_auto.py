@@ -129,3 +129,26 @@ def test_stage_builds_a_at_the_chosen_height_and_records_why(tmp_path, noise, ex
     assert sorted(p.name for p in out.iterdir()) == ["cam0", "index.json"]  # the other height's A deleted
     step = rec["targets"]["t0"]["steps"][0]
     assert (step["gain"] > step["threshold"]) == (expect == 8) and json.dumps(rec)
+
+
+@pytest.mark.parametrize("params, words", [
+    ({"supersample": 2}, ("transport.supersample", "env_height=auto")),
+    ({"env_height_candidates": [64, 128], "env_height_max_seconds": 1.0}, ("no candidate height fits",
+                                                                            "env_height_max_seconds")),
+])
+def test_auto_refuses_before_building_with_one_line_naming_the_fix(tmp_path, params, words):
+    from objcam.errors import StageError
+    from objcam.pipeline.stage import StageInputs
+    from objcam.stages import transport as stage
+    from tests.test_transport import _write_artifact
+
+    art = tmp_path / "art"
+    _write_artifact(art)
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(StageError) as e:
+        stage.run(StageInputs(capture=art, upstream={"scene": art}, out=out),
+                  stage.Params(env_height="auto", model="direct", **params))
+    msg = str(e.value)
+    assert all(w in msg for w in words) and "capture.toml" in msg and "\n" not in msg, msg
+    assert not any(out.iterdir())  # nothing built
