@@ -9,7 +9,8 @@ objcam.transport.auto).
 
 from __future__ import annotations
 
-from typing import Literal
+import json
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -26,7 +27,14 @@ CODE_DEPS = ("objcam.transport", "objcam.render", "objcam.scene", "objcam.envmap
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
     model: Literal["auto", "direct", "path"] = "auto"
-    env_height: int = Field(32, ge=2, description="envmap rows (width 2x)")
+    env_height: Annotated[int, Field(ge=2)] | Literal["auto"] = Field(
+        32, description="envmap rows (width 2x); 'auto': the finest of env_height_candidates the photo supports "
+        "(A built at each in turn, a coarse-to-fine test of the quadratic fits: objcam.transport.resolution)")
+    env_height_candidates: list[int] = Field([32, 64, 128], min_length=1, description="env_height=auto: the "
+                                             "heights tried, coarsest first (each within the machine's memory "
+                                             "and env_height_max_seconds, objcam.transport.budget)")
+    env_height_max_seconds: float = Field(600.0, gt=0, description="env_height=auto: refuse a height whose "
+                                          "planned A, Gram and exact solve take longer (budget's estimate)")
     supersample: int = Field(1, ge=1, le=2, description="build A on a grid this many times finer than env_height; "
                              "the solve resolves sub-texel light where the envmap has contrast and writes the "
                              "envmap area-averaged to env_height (objcam.solvers.refine). 2: the quality setting "
@@ -78,17 +86,10 @@ class Params(BaseModel):
 
 
 def run(inputs: StageInputs, params: Params) -> StageOutputs:
-    import json
     import time
 
     from objcam.schemas.artifacts import SceneArtifact
-    from objcam.transport import budget
-    from objcam.transport.auto import estimate_relative_noise
-    from objcam.transport.build import BuildSettings, build_camera
-    from objcam.transport.geometry import SceneGeometry
-    from objcam.transport.engine import current
     from objcam.transport.storage import write_index
-
     from objcam.transport.variant import activate
 
     t0 = time.perf_counter()
@@ -97,63 +98,115 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     groups: dict[str, list] = {}
     for t in art.targets:
         groups.setdefault(json.dumps(t.camera.model_dump(), sort_keys=True), []).append(t)
-    fine_height = params.env_height * params.supersample  # A's grid (objcam.solvers.refine)
     desc = art.description
     if params.supersample > 1 and not (desc.albedo_object.known and desc.albedo_support.known):
         # refused here, before the build, rather than by the solve after it
         raise StageError("transport.supersample > 1 is solved only with a known albedo, and this capture leaves "
                          "the " + ("object's" if not desc.albedo_object.known else "support's") + " albedo unknown",
                          inputs.capture / "capture.toml", "set transport.supersample=1")
-    planned = {"bytes": 0, "seconds": 0.0}
-    for cam_targets in groups.values():  # the size first: refuse what the machine cannot hold before building
-        cam, f = cam_targets[0].camera, downsample_for(cam_targets[0].camera, params)
-        est = budget.estimate((cam.height // f) * (cam.width // f),
-                              budget.kept_texels(fine_height, desc.support_is_plane),
-                              1 if desc.albedo_is_grey() else 3)
-        budget.check(est, inputs.capture / "capture.toml")
-        planned = {"bytes": max(planned["bytes"], est["bytes"]), "seconds": planned["seconds"] + est["seconds"]}
-    geo = SceneGeometry.load(desc, art.folder, env_height=fine_height,
-                             upsample=params.path_upsample)
-    mapping: dict[str, str] = {}
-    metrics: dict = {}
-    totals = {"pixels_kept": 0, "pixels_total": 0, "rays_traced": 0, "rays_culled": 0}
-    per_cam = []
-    for i, targets in enumerate(groups.values()):
-        sub = f"cam{i}"
-        valids = [t.load_valid(art.folder) for t in targets]
-        f = downsample_for(targets[0].camera, params)
-        settings = BuildSettings(**(params.model_dump(exclude={"max_pixels", "supersample", "variant"})
-                                    | {"downsample": f, "env_height": fine_height,
-                                       "output_height": params.env_height}))
-        noise = (_target_noise(art.folder, targets, f, estimate_relative_noise)
-                 if params.model == "auto" else None)
-        m = build_camera(geo, targets[0].camera, inputs.out / sub, settings, valids=valids,
-                         targets=[t.name for t in targets], target_noise=noise)
-        m["gram_seconds"] = round(current().write_gram(inputs.out / sub), 3)  # objcam.transport.engine
-        m.update(current().metrics())
-        per_cam.append(m)
-        for t in targets:
-            mapping[t.name] = sub
-        for key in totals:
-            totals[key] += int(m.get(key, 0))
-        if len(groups) > 1:
-            metrics.update({f"{sub}.{k}": v for k, v in m.items()})
+    choice = None
+    if params.env_height == "auto":
+        from objcam.transport.resolution import choose_height
+
+        if params.supersample > 1:
+            raise StageError("transport.env_height=auto chooses the envmap's own grid and is not combined with "
+                             "transport.supersample > 1", inputs.capture / "capture.toml",
+                             "set transport.supersample=1, or a fixed transport.env_height")
+        height, choice = choose_height(inputs.out, params, art, list(groups.values()),
+                                       lambda h: _estimates(params, art, list(groups.values()), h),
+                                       lambda h, out: _build_height(inputs, params, art, list(groups.values()), h,
+                                                                    out)[:2],
+                                       toml=inputs.capture / "capture.toml")
+    else:
+        height = params.env_height
+        _check_budget(inputs, params, art, list(groups.values()), height)
+    if choice is None:
+        per_cam, mapping, planned = _build_height(inputs, params, art, list(groups.values()), height, inputs.out)
+    else:  # built already, moved into place by choose_height
+        per_cam, mapping = choice.pop("_built")
+        ests = _estimates(params, art, list(groups.values()), height)
+        planned = {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
     write_index(inputs.out, mapping)
+    metrics: dict = {}
     first = per_cam[0] if per_cam else {}
     if len(groups) == 1:
         metrics.update(first)
+    else:
+        for i, m in enumerate(per_cam):
+            metrics.update({f"cam{i}.{k}": v for k, v in m.items()})
+    totals = {k: sum(int(m.get(k, 0)) for m in per_cam)
+              for k in ("pixels_kept", "pixels_total", "rays_traced", "rays_culled")}
     metrics.update(totals)
     metrics["cameras"] = len(groups)
     metrics["variant"] = variant
+    metrics["env_height"] = height
     metrics["planned_peak_gib"] = round(planned["bytes"] / 2**30, 6)  # objcam.transport.budget's estimate
     metrics["planned_seconds"] = round(planned["seconds"], 1)
+    if choice is not None:
+        metrics["env_height_auto"] = choice  # the choice, its measure and its reason (objcam.transport.resolution)
     metrics["seconds_total"] = round(time.perf_counter() - t0, 3)
     chosen = ",".join(sorted({str(m.get("model")) for m in per_cam}))
     k_or_spp = f"K={params.samples}" if params.model != "path" else f"spp={params.path_spp}"
     cams = f", {len(groups)} cameras" if len(groups) > 1 else ""
     summary = (f"A: {totals['pixels_kept']:,} px x {first.get('texels_kept', 0):,} texels ({chosen} {k_or_spp}{cams}) "
                f"in {metrics['seconds_total']:.1f} s")
+    if choice is not None:
+        summary += f"; env_height auto -> {height}: {choice['reason']}"
     return StageOutputs(metrics=metrics, summary=summary)
+
+
+def _estimates(params: Params, art, groups: list[list], height: int) -> list[dict]:
+    """objcam.transport.budget's estimate per camera for envmap ``height`` (A on height x supersample rows)."""
+    from objcam.transport import budget
+
+    desc = art.description
+    out = []
+    for cam_targets in groups:
+        cam, f = cam_targets[0].camera, downsample_for(cam_targets[0].camera, params)
+        out.append(budget.estimate((cam.height // f) * (cam.width // f),
+                                   budget.kept_texels(height * params.supersample, desc.support_is_plane),
+                                   1 if desc.albedo_is_grey() else 3))
+    return out
+
+
+def _check_budget(inputs: StageInputs, params: Params, art, groups: list[list], height: int) -> None:
+    """Refuse what the machine cannot hold before building (objcam.transport.budget)."""
+    from objcam.transport import budget
+
+    for est in _estimates(params, art, groups, height):
+        budget.check(est, inputs.capture / "capture.toml")
+
+
+def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], height: int, out):
+    """Build every camera's A for an envmap of ``height`` rows into ``out``/cam<i> (A's grid height x
+    supersample, objcam.solvers.refine) with its Gram matrix. Returns (per-camera metrics, {target: "cam<i>"},
+    the planned {"bytes", "seconds"})."""
+    from objcam.transport.auto import estimate_relative_noise
+    from objcam.transport.build import BuildSettings, build_camera
+    from objcam.transport.engine import current
+    from objcam.transport.geometry import SceneGeometry
+
+    fine_height = height * params.supersample  # A's grid (objcam.solvers.refine)
+    ests = _estimates(params, art, groups, height)
+    planned = {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
+    geo = SceneGeometry.load(art.description, art.folder, env_height=fine_height, upsample=params.path_upsample)
+    per_cam, mapping = [], {}
+    for i, targets in enumerate(groups):
+        sub = f"cam{i}"
+        valids = [t.load_valid(art.folder) for t in targets]
+        f = downsample_for(targets[0].camera, params)
+        settings = BuildSettings(**(params.model_dump(exclude={"max_pixels", "supersample", "variant",
+                                                               "env_height_candidates", "env_height_max_seconds"})
+                                    | {"downsample": f, "env_height": fine_height, "output_height": height}))
+        noise = (_target_noise(art.folder, targets, f, estimate_relative_noise)
+                 if params.model == "auto" else None)
+        m = build_camera(geo, targets[0].camera, out / sub, settings, valids=valids,
+                         targets=[t.name for t in targets], target_noise=noise)
+        m["gram_seconds"] = round(current().write_gram(out / sub), 3)  # objcam.transport.engine
+        m.update(current().metrics())
+        per_cam.append(m)
+        mapping.update({t.name: sub for t in targets})
+    return per_cam, mapping, planned
 
 
 def downsample_for(camera, params: Params) -> int:
