@@ -22,6 +22,15 @@ No ground truth is used: every measure comes from the photo, the model and the s
 * the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
 
 Thresholds (objcam.solvers.plan.defaults, ``VERDICT_*``) and how they were chosen: bench/results.md, issue 22.
+
+Measured on the hard suite and not used, because none of them separates its SSIM < 0.4 maps from its good ones
+(bench/results.md, sessions 15 and 18):
+* a parametric bootstrap;
+* a predicted SSIM from posterior samples ``x_hat + sigma L^-T z``, under the smoothness or the solve's own edge
+  prior;
+* the disagreement with the smoothness prior's solve;
+* the residuals' spatial structure.
+Those maps' error is the prior's bias where the photo is silent, and none of these statistics see it.
 """
 
 from __future__ import annotations
