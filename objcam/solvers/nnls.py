@@ -178,14 +178,19 @@ class _Stats:
     pcg_tightened: int = 0  # columns re-solved to PCG_SLACK after a loose round showed nothing infeasible
 
 
+def _free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
+    """The columns of ``cols`` grouped by identical free sets F[:, c] (F (N, m) bool), keyed by the packed set."""
+    keys: dict[bytes, list[int]] = {}
+    for c in cols:
+        keys.setdefault(np.packbits(F[:, c]).tobytes(), []).append(int(c))
+    return keys
+
+
 def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
     """For each column in ``cols``: x_F = Q_FF^{-1} b_F, x_G = 0, g = Q x - b. Groups identical F patterns."""
     if len(cols) == 0:
         return
-    keys: dict[bytes, list[int]] = {}
-    for c in cols:
-        keys.setdefault(np.packbits(F[:, c]).tobytes(), []).append(int(c))
-    for group in keys.values():
+    for group in _free_groups(F, cols).values():
         idx = np.flatnonzero(F[:, group[0]])
         X[:, group] = 0.0
         if idx.size == 0:
@@ -265,10 +270,7 @@ class _SchurFree:
         if len(cols) == 0:
             return
         self._ensure()
-        keys: dict[bytes, list[int]] = {}
-        for c in cols:
-            keys.setdefault(np.packbits(F[:, c]).tobytes(), []).append(int(c))
-        for group in keys.values():
+        for group in _free_groups(F, cols).values():
             Z = np.flatnonzero(~F[:, group[0]])
             Bg = self.B[:, group]
             Xg = self._constrained(self.X0[:, group], Z)
@@ -365,14 +367,15 @@ class _PCGFree:
             QX = QX + self.Q[moved].T @ (X0[moved] - X[moved])
         return X0, QX
 
-    def _pcg(self, blocks: list[tuple[np.ndarray, list[int]]], X0: np.ndarray, QX: np.ndarray
+    def _pcg(self, blocks: list[tuple[bytes, np.ndarray, list[int]]], X0: np.ndarray, QX: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """PCG on every ``(idx, group)`` block's ``Q_FF x_F = b_F`` at once from X0 (N, m; 0 off F) with QX = Q X0:
-        one product of Q with all the columns' directions per iteration. Returns (X, Q X (N, m), accumulated
-        over the iterations, done (m,) bool) for the m = sum |group| columns in order."""
+        """PCG on every ``(key, idx, group)`` block's ``Q_FF x_F = b_F`` (key: :func:`_free_groups`'s) at once
+        from X0 (N, m; 0 off F) with QX = Q X0: one product of Q with all the columns' directions per iteration.
+        Returns (X, Q X (N, m), accumulated over the iterations, done (m,) bool) for the m = sum |group| columns
+        in order."""
         cols = self._cols
         spans, j = [], 0
-        for idx, group in blocks:
+        for _, idx, group in blocks:
             spans.append((idx, slice(j, j + len(group))))
             j += len(group)
         lim = (PCG_LOOSE if self.loose else PCG_SLACK) * self.tg[cols]  # (m,)
@@ -380,9 +383,8 @@ class _PCGFree:
         for idx, sl in spans:
             mask[idx, sl] = True
         # a block's preconditioner is kept for the next call (the tightening re-solve of the same free set)
-        keys = [np.packbits(mask[:, sl.start]).tobytes() for _, sl in spans]
-        precs = [self._precs.get(key) or self._preconditioner(idx) for key, (idx, _) in zip(keys, blocks)]
-        self._precs = dict(zip(keys, precs))
+        precs = [self._precs.get(key) or self._preconditioner(idx) for key, idx, _ in blocks]
+        self._precs = {key: pr for (key, _, _), pr in zip(blocks, precs)}
         Xn, QX = X0.copy(), QX.copy()
         R = np.where(mask, self.B[:, cols] - QX, 0.0)  # the residual on each column's free rows, 0 off them
 
@@ -432,21 +434,18 @@ class _PCGFree:
     def __call__(self, F: np.ndarray, cols, X: np.ndarray, G: np.ndarray) -> None:
         if len(cols) == 0:
             return
-        keys: dict[bytes, list[int]] = {}
-        for c in cols:
-            keys.setdefault(np.packbits(F[:, c]).tobytes(), []).append(int(c))
         blocks, small = [], []
-        for group in keys.values():
+        for key, group in _free_groups(F, cols).items():
             idx = np.flatnonzero(F[:, group[0]])
-            (blocks if idx.size >= PCG_MIN_BLOCK else small).append((idx, group))
-        for _, group in small:  # small free blocks: a Cholesky each is cheaper
+            (blocks if idx.size >= PCG_MIN_BLOCK else small).append((key, idx, group))
+        for _, _, group in small:  # small free blocks: a Cholesky each is cheaper
             _solve_free(self.Q, self.B, F, group, X, G, self.stats)
             self.rough[group] = False
         if not blocks:
             self.first = False
             return
         self.stats.pcg_blocks += len(blocks)
-        self._cols = allc = [c for _, group in blocks for c in group]
+        self._cols = allc = [c for _, _, group in blocks for c in group]
         Fm = F[:, allc]
         if self.first:  # X and G are not yet a consistent pair: one full product
             X0 = np.where(Fm, np.maximum(X[:, allc], 0.0), 0.0)
