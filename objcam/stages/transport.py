@@ -98,6 +98,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     groups: dict[str, list] = {}
     for t in art.targets:
         groups.setdefault(json.dumps(t.camera.model_dump(), sort_keys=True), []).append(t)
+    by_camera = list(groups.values())  # each camera's targets
     desc = art.description
     if params.supersample > 1 and not (desc.albedo_object.known and desc.albedo_support.known):
         # refused here, before the build, rather than by the solve after it
@@ -112,20 +113,18 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
             raise StageError("transport.env_height=auto chooses the envmap's own grid and is not combined with "
                              "transport.supersample > 1", inputs.capture / "capture.toml",
                              "set transport.supersample=1, or a fixed transport.env_height")
-        height, choice = choose_height(inputs.out, params, art, list(groups.values()),
-                                       lambda h: _estimates(params, art, list(groups.values()), h),
-                                       lambda h, out: _build_height(inputs, params, art, list(groups.values()), h,
-                                                                    out)[:2],
+        height, choice = choose_height(inputs.out, params, art, by_camera,
+                                       lambda h: _estimates(params, art, by_camera, h),
+                                       lambda h, out: _build_height(inputs, params, art, by_camera, h, out)[:2],
                                        toml=inputs.capture / "capture.toml")
     else:
         height = params.env_height
-        _check_budget(inputs, params, art, list(groups.values()), height)
+        _check_budget(inputs, params, art, by_camera, height)
     if choice is None:
-        per_cam, mapping, planned = _build_height(inputs, params, art, list(groups.values()), height, inputs.out)
+        per_cam, mapping, planned = _build_height(inputs, params, art, by_camera, height, inputs.out)
     else:  # built already, moved into place by choose_height
         per_cam, mapping = choice.pop("_built")
-        ests = _estimates(params, art, list(groups.values()), height)
-        planned = {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
+        planned = _planned(_estimates(params, art, by_camera, height))
     write_index(inputs.out, mapping)
     metrics: dict = {}
     first = per_cam[0] if per_cam else {}
@@ -169,6 +168,12 @@ def _estimates(params: Params, art, groups: list[list], height: int) -> list[dic
     return out
 
 
+def _planned(ests: list[dict]) -> dict:
+    """The build's plan from its cameras' estimates: the largest peak (cameras are built one after another) and
+    the summed time."""
+    return {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
+
+
 def _check_budget(inputs: StageInputs, params: Params, art, groups: list[list], height: int) -> None:
     """Refuse what the machine cannot hold before building (objcam.transport.budget)."""
     from objcam.transport import budget
@@ -187,8 +192,7 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
     from objcam.transport.geometry import SceneGeometry
 
     fine_height = height * params.supersample  # A's grid (objcam.solvers.refine)
-    ests = _estimates(params, art, groups, height)
-    planned = {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
+    planned = _planned(_estimates(params, art, groups, height))
     geo = SceneGeometry.load(art.description, art.folder, env_height=fine_height, upsample=params.path_upsample)
     per_cam, mapping = [], {}
     for i, targets in enumerate(groups):

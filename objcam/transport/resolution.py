@@ -30,7 +30,6 @@ import numpy as np
 import scipy.linalg as sla
 
 Z = 3.0  # one-sided significance of the test, in standard deviations of the null gain (module docstring)
-CANDIDATES = (32, 64, 128)
 
 
 @dataclass
