@@ -69,8 +69,9 @@ def noisy_capture(out: Path, renders: Path, hdris, noise: float, seed: int = 0) 
     (cap / "truth").mkdir()
     shutil.copy(renders / "object.ply", cap / "object.ply")
     toml, truth = [], {}
+    metas = json.loads((renders / "truth" / "truth.json").read_text())["targets"]
     for i, h in enumerate(hdris):
-        meta = json.loads((renders / "truth" / "truth.json").read_text())["targets"][h]
+        meta = metas[h]
         clean = read_exr(renders / meta["clean_image"])
         exposure = camera_exposure(clean, noise)
         img, _ = apply_noise(clean, exposure, READ_NOISE, meta.get("white_level"),
@@ -179,9 +180,8 @@ def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
     target_fit and walk, with the stage's noise) run on the fixed-height runs' transports, which are the A's the
     stage would build (same settings and seed). Returns a record shaped like the stage's."""
     from objcam.schemas.artifacts import SceneArtifact
-    from objcam.transport import load_transport, pool_target
-    from objcam.transport.auto import absolute_noise
-    from objcam.transport.resolution import Z, target_fit, walk
+    from objcam.transport import load_transport
+    from objcam.transport.resolution import Z, pooled_target, target_fit, walk
 
     t0, c0 = time.perf_counter(), time.process_time()
     art = SceneArtifact.load(next(iter(works.values())) / "scene")
@@ -192,9 +192,7 @@ def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
         fits, sigma_abs, rel = {}, None, None
         for height, work in sorted(works.items()):
             tr = load_transport(work / "transport", h)
-            img, ok = pool_target(t.load_image(art.folder), t.load_valid(art.folder), tr.downsample)
-            rel = t.noise_sigma / tr.downsample
-            sigma_abs = absolute_noise(tr.pixels_of(img)[tr.pixels_of(ok[..., None]).ravel()], rel)
+            img, ok, rel, sigma_abs = pooled_target(t, art.folder, tr)
             fits[height] = target_fit(tr, img, ok, rel)
         chosen, steps = walk(fits, sigma_abs)
         out[h] = {"height": chosen, "noise_rel": rel, "steps": steps}

@@ -109,6 +109,19 @@ def target_fit(tr, image: np.ndarray, valid: np.ndarray, sigma_rel: float) -> Le
         return fit_level(A, G, D, y[use], sigma_rel, tr.env_height)
 
 
+def pooled_target(target, folder, tr) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(pooled image (H', W', 3), its valid mask (H', W'), relative noise per fitted pixel value, absolute noise)
+    of one capture target on a transport's pixels: the stated noise_sigma over the pooling, else estimated from
+    the image (1% when it cannot be)."""
+    from objcam.transport.auto import absolute_noise, estimate_relative_noise
+    from objcam.transport.pixels import pool_target
+
+    img, ok = pool_target(target.load_image(folder), target.load_valid(folder), tr.downsample)
+    rel = float(target.noise_sigma / tr.downsample if target.noise_sigma is not None
+                else (estimate_relative_noise(img, ok) or 0.01))
+    return img, ok, rel, absolute_noise(tr.pixels_of(img)[tr.pixels_of(ok[..., None]).ravel()], rel)
+
+
 def walk(fits: dict[int, LevelFit], sigma_abs: float, z: float = Z) -> tuple[int, list[dict]]:
     """(the chosen height, one record per comparison made): up from the coarsest fitted height while the next one
     is supported."""
@@ -165,8 +178,6 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
     import time
 
     from objcam.errors import StageError
-    from objcam.transport.auto import absolute_noise, estimate_relative_noise
-    from objcam.transport.pixels import pool_target
     from objcam.transport.storage import load_group
 
     c0 = time.process_time()
@@ -195,12 +206,9 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
             sub = built[h][1][t.name]
             tr = loaded[sub] if sub in loaded else loaded.setdefault(sub, load_group(folder / sub))
             if t.name not in images:  # the pooled photo and its noise, once per target
-                img, ok = pool_target(t.load_image(art.folder), t.load_valid(art.folder), tr.downsample)
-                rel = (t.noise_sigma / tr.downsample if t.noise_sigma is not None
-                       else (estimate_relative_noise(img, ok) or 0.01))
+                img, ok, rel, sigma_abs = pooled_target(t, art.folder, tr)
                 images[t.name] = (img, ok)
-                noise[t.name] = (float(rel), absolute_noise(tr.pixels_of(img)[tr.pixels_of(ok[..., None]).ravel()],
-                                                            rel))
+                noise[t.name] = (rel, sigma_abs)
             fits.setdefault(t.name, {})[h] = target_fit(tr, *images[t.name], noise[t.name][0])
         del loaded, tr
         seconds[h] = round(time.perf_counter() - t0, 3)
