@@ -176,6 +176,8 @@ class _Stats:
     pcg_fallbacks: int = 0  # of them, handed to Cholesky when PCG stalled
     cg_iterations: int = 0
     pcg_tightened: int = 0  # columns re-solved to PCG_SLACK after a loose round showed nothing infeasible
+    pcg_setups: int = 0  # fresh preconditioner set-ups (sparse LU + k solves)
+    pcg_updates: int = 0  # preconditioners made from a base's factors by a bordered update (_Bordered)
 
 
 def _free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
@@ -299,6 +301,102 @@ PCG_SLACK = 1e-2
 #: PCG_SLACK and checked again: the answer is the same)
 PCG_LOOSE = 1e4
 PCG_MAX_IT = 60
+#: a free set whose difference from a base's is at most this many times the preconditioner's rank k is served
+#: by a bordered update of that base (:class:`_Bordered`) instead of a fresh set-up
+PCG_UPDATE_RANKS = 1.0
+
+
+#: fresh preconditioner set-ups kept per solve as bases for bordered updates (the newest first)
+_MAX_BASES = 8
+
+
+class _Base:
+    """A fresh preconditioner set-up on the free set ``idx`` (|F0|,): ``apply(R) = P_F0F0^-1 R`` for R (|F0|, m),
+    P = M + V diag(lam) V^T, M sparse (S + diag(c)): Woodbury with a sparse LU of M_F0F0 and a Cholesky of the
+    k x k capacitance. ``mask`` (N,) bool: F0; ``pos`` (N,): a variable's row in F0, -1 outside it."""
+
+    def __init__(self, idx: np.ndarray, mask: np.ndarray, M, V: np.ndarray, lam: np.ndarray):
+        from scipy.linalg import cho_factor
+        from scipy.sparse.linalg import splu
+
+        self.idx, self.mask = idx, mask
+        self.pos = np.full(mask.size, -1)
+        self.pos[idx] = np.arange(idx.size)
+        self.lu = splu(M[idx][:, idx].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        self.Y = self.cap = None
+        if lam.size:
+            Vf = V[idx]
+            self.Y = self.lu.solve(Vf)  # M_FF^-1 V_F, (|F0|, k)
+            self.cap = cho_factor(np.diag(1.0 / lam) + Vf.T @ self.Y, check_finite=False)
+
+    def apply(self, R: np.ndarray) -> np.ndarray:
+        from scipy.linalg import cho_solve
+
+        Z = self.lu.solve(R)
+        if self.Y is not None:
+            Z -= self.Y @ cho_solve(self.cap, self.Y.T @ R, check_finite=False)
+        return Z
+
+
+class _Bordered:
+    """P_FF^-1 for a free set F near a base's F0, from the base's factors (exact up to rounding, so PCG takes the
+    iterations of a fresh set-up): with H = P_F0F0^-1, F' = F0 minus the removed set R and A = F minus F0,
+
+    * removing R: ``P_F'F'^-1 = H_F'F' - H_F'R (H_RR)^-1 H_RF'`` (H's columns on R: |R| base applications);
+    * adding A: block elimination with ``K = P_F'F'^-1 P_F'A`` and the Schur complement ``T = P_AA - P_AF' K``.
+
+    Set-up ~(|R| + |A|) base applications (against a sparse LU and k of them), each application one base
+    application and a few |F| x (|R| + |A|) products."""
+
+    def __init__(self, base: _Base, idx: np.ndarray, mask: np.ndarray, M, V: np.ndarray, lam: np.ndarray):
+        from scipy.linalg import cho_factor
+
+        self.base = base
+        inb = base.mask[idx]
+        self.keep = np.flatnonzero(inb)  # rows of F in F0 (F' in F's order)
+        self.add = np.flatnonzero(~inb)  # rows of F outside F0 (A)
+        self.pk = base.pos[idx[self.keep]]  # their rows in F0
+        rem = np.flatnonzero(base.mask & ~mask)
+        self.pr = base.pos[rem]  # rows of F0 that left F
+        self.n0 = base.idx.size
+        self.WR = None
+        if rem.size:
+            E = np.zeros((self.n0, rem.size))
+            E[self.pr, np.arange(rem.size)] = 1.0
+            self.WR = base.apply(E)  # H's columns on R, (|F0|, |R|)
+            self.HRR = cho_factor(0.5 * (self.WR[self.pr] + self.WR[self.pr].T), check_finite=False)
+        self.K = None
+        if self.add.size:
+            fa, fk = idx[self.add], idx[self.keep]
+            Va = V[fa] * lam
+            B = M[fk][:, fa].toarray() + V[fk] @ Va.T  # P_F'A
+            self.K = self._inner(B)
+            T = M[fa][:, fa].toarray() + V[fa] @ Va.T - B.T @ self.K
+            self.B, self.T = B, cho_factor(0.5 * (T + T.T), check_finite=False)
+
+    def _inner(self, R: np.ndarray) -> np.ndarray:
+        """P_F'F'^-1 R for R (|F'|, m)."""
+        from scipy.linalg import cho_solve
+
+        U = np.zeros((self.n0, R.shape[1]))
+        U[self.pk] = R
+        W = self.base.apply(U)
+        if self.WR is not None:
+            W -= self.WR @ cho_solve(self.HRR, W[self.pr], check_finite=False)
+        return W[self.pk]
+
+    def __call__(self, R: np.ndarray) -> np.ndarray:
+        from scipy.linalg import cho_solve
+
+        Z = np.empty_like(R)
+        z = self._inner(R[self.keep])
+        if self.K is not None:
+            za = cho_solve(self.T, R[self.add] - self.B.T @ z, check_finite=False)
+            z -= self.K @ za
+            Z[self.add] = za
+        Z[self.keep] = z
+        return Z
 
 
 class _PCGFree:
@@ -330,24 +428,31 @@ class _PCGFree:
         self.rough = np.zeros(B.shape[1], dtype=bool)  # columns whose last solve was loose
         self._cols: list[int] = []
         self._precs: dict[bytes, object] = {}
+        self._bases: list[_Base] = []  # this solve's fresh set-ups, newest first
 
     def _preconditioner(self, idx: np.ndarray):
-        """z = P_FF^-1 r for r (|F|, m): Woodbury on the free rows."""
-        from scipy.linalg import cho_factor, cho_solve
-        from scipy.sparse.linalg import splu
-
-        lu = splu(self.M[idx][:, idx].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-        if self.lam.size == 0:
-            return lu.solve
-        Vf = self.V[idx]
-        Y = lu.solve(Vf)  # (S + c)_FF^-1 V_F, (|F|, k)
-        cap = cho_factor(np.diag(1.0 / self.lam) + Vf.T @ Y, check_finite=False)
-
-        def apply(R: np.ndarray) -> np.ndarray:
-            return lu.solve(R) - Y @ cho_solve(cap, Y.T @ R, check_finite=False)
-
-        return apply
+        """z = P_FF^-1 r for r (|F|, m): Woodbury on the free rows. A free set close to one already set up in
+        this solve (the previous round's, another colour column's) is served by that base's factors through a
+        bordered update (:class:`_Bordered`); otherwise a fresh set-up, which becomes a base."""
+        mask = np.zeros(self.Q.shape[0], dtype=bool)
+        mask[idx] = True
+        best, cost = None, None
+        for base in self._bases:  # the base with the fewest variables to remove and add
+            c = int(np.count_nonzero(mask ^ base.mask))
+            if cost is None or c < cost:
+                best, cost = base, c
+        # an update costs ~one base application per changed variable, a set-up a sparse LU and k of them
+        if best is not None and cost <= PCG_UPDATE_RANKS * max(self.lam.size, 1):
+            try:
+                pr = _Bordered(best, idx, mask, self.M, self.V, self.lam)
+                self.stats.pcg_updates += 1
+                return pr
+            except np.linalg.LinAlgError:  # a numerically indefinite border: set up afresh
+                pass
+        base = _Base(idx, mask, self.M, self.V, self.lam)
+        self.stats.pcg_setups += 1
+        self._bases = [base] + self._bases[: _MAX_BASES - 1]
+        return base.apply
 
     def _product(self, V: np.ndarray) -> np.ndarray:
         """Q V (N, m) as (V^T Q)^T: Q is symmetric, and the row-major product reads it ~1.7x faster for a few
@@ -652,6 +757,7 @@ def solve_exact(
             "schur": bool(live.size and use_schur),
             **({"pcg_blocks": stats.pcg_blocks, "pcg_fallbacks": stats.pcg_fallbacks,
                 "cg_iterations": stats.cg_iterations, "pcg_tightened": stats.pcg_tightened,
+                "pcg_setups": stats.pcg_setups, "pcg_updates": stats.pcg_updates,
                 "pcg_restarts": restarts} if use_pcg else {}),
             "fixed_zero_variables": int(dead.sum()),
             "active": [int(v) for v in (X <= 0).sum(axis=0)],
