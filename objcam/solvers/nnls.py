@@ -324,6 +324,25 @@ def _runs(nz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, e
 
 
+def _qdot(Q: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Q V (N, m) for a symmetric Q (N, N) and V (N, m) with few columns, reading only Q's rows where V is nonzero.
+
+    As (V^T Q)^T: the row-major product reads Q ~1.7x faster for a few columns (a 3,131 x 3,131 Q times 3
+    columns: 10 against 17 ms on one core). V of a free-block solve is 0 off its free rows: Q V = sum over V's
+    runs of nonzero rows of Q[a:b]^T V[a:b], a BLAS product on contiguous rows of Q each, accumulated in place,
+    and the zero set's rows are never read (3 columns 69-87% free: 6.9 against 8.3 ms)."""
+    nz = np.any(V != 0, axis=1)
+    starts, ends = _runs(nz)
+    if nz.mean() > _RUNS_MAX_SHARE or starts.size > _RUNS_MAX:
+        return (np.ascontiguousarray(V.T) @ Q).T
+    from scipy.linalg import blas
+
+    out = np.zeros(V.shape, order="F")
+    for a, b in zip(starts, ends):
+        out = blas.dgemm(1.0, Q[a:b].T, V[a:b], beta=1.0, c=out, overwrite_c=1)
+    return out
+
+
 #: fresh preconditioner set-ups kept per solve as bases for bordered updates (the newest first)
 _MAX_BASES = 8
 
@@ -473,20 +492,8 @@ class _PCGFree:
         return base.apply
 
     def _product(self, V: np.ndarray) -> np.ndarray:
-        """Q V (N, m) as (V^T Q)^T: Q is symmetric, and the row-major product reads it ~1.7x faster for a few
-        columns (a 3,131 x 3,131 Q times 3 columns: 10 against 17 ms on one core)."""
-        nz = np.any(V != 0, axis=1)
-        starts, ends = _runs(nz)
-        if nz.mean() > _RUNS_MAX_SHARE or starts.size > _RUNS_MAX:
-            return (np.ascontiguousarray(V.T) @ self.Q).T
-        # V is 0 off its free rows: Q V = sum over V's runs of nonzero rows of Q[a:b]^T V[a:b] (Q symmetric), a
-        # BLAS product on contiguous rows of Q each, accumulated in place: Q's zero-set rows are never read
-        from scipy.linalg import blas
-
-        out = np.zeros((V.shape[0], V.shape[1]), order="F")
-        for a, b in zip(starts, ends):
-            out = blas.dgemm(1.0, self.Q[a:b].T, V[a:b], beta=1.0, c=out, overwrite_c=1)
-        return out
+        """Q V (N, m) for V (N, m): :func:`_qdot`."""
+        return _qdot(self.Q, V)
 
     def _start(self, X: np.ndarray, G: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(X0, Q X0) for columns whose X (N, m), G = Q X - B (N, m) are the previous round's and F (N, m) the new
@@ -684,7 +691,8 @@ def solve_exact(
     n, ncol = B2.shape
     if Q.shape != (n, n):
         raise ValueError(f"Q is {Q.shape}, B has {n} rows")
-    if not (np.all(np.isfinite(Q)) and np.all(np.isfinite(B2))):
+    # (a non-finite entry makes the sum non-finite: the N^2 elementwise test only when the sum is, e.g. overflowed)
+    if not (np.isfinite(Q.sum()) or np.all(np.isfinite(Q))) or not np.all(np.isfinite(B2)):
         raise ValueError("Q and B must be finite")
     if max_iter is None:
         max_iter = 10 * n + 100
@@ -739,7 +747,7 @@ def solve_exact(
                 pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats)
                 pcg(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=pcg)
-                QX = Ql @ np.maximum(Xl, 0.0)  # the final check's product, kept for the KKT and objective below
+                QX = _qdot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective
                 if converged and float(kkt_residual(Ql, Bl, np.maximum(Xl, 0.0), QX=QX).max()) > tol:
                     # what PCG left above tol (not seen on the bench's solves): Cholesky blocks from its free set
                     restarts += 1
