@@ -350,7 +350,7 @@ _MAX_BASES = 8
 class _Base:
     """A fresh preconditioner set-up on the free set ``idx`` (|F0|,): ``apply(R) = P_F0F0^-1 R`` for R (|F0|, m),
     P = M + V diag(lam) V^T, M sparse (S + diag(c)): Woodbury with a sparse LU of M_F0F0 and a Cholesky of the
-    k x k capacitance. ``mask`` (N,) bool: F0; ``pos`` (N,): a variable's row in F0, -1 outside it."""
+    k x k capacitance (M CSR, symmetric). ``mask`` (N,) bool: F0; ``pos`` (N,): a variable's row in F0, -1 outside it."""
 
     def __init__(self, idx: np.ndarray, mask: np.ndarray, M, V: np.ndarray, lam: np.ndarray):
         from scipy.linalg import cho_factor
@@ -359,7 +359,8 @@ class _Base:
         self.idx, self.mask = idx, mask
         self.pos = np.full(mask.size, -1)
         self.pos[idx] = np.arange(idx.size)
-        self.lu = splu(M[idx][:, idx].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        # M is CSR and symmetric: the block's rows, and its transpose as the CSC matrix splu takes (no conversion)
+        self.lu = splu(M[idx][:, idx].T, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                        options={"SymmetricMode": True})
         self.Y = self.cap = None
         if lam.size:
@@ -407,9 +408,10 @@ class _Bordered:
         if self.add.size:
             fa, fk = idx[self.add], idx[self.keep]
             Va = V[fa] * lam
-            B = M[fk][:, fa].toarray() + V[fk] @ Va.T  # P_F'A
+            Ma = M[fa]  # (the rows of A: M is CSR and symmetric)
+            B = Ma[:, fk].toarray().T + V[fk] @ Va.T  # P_F'A
             self.K = self._inner(B)
-            T = M[fa][:, fa].toarray() + V[fa] @ Va.T - B.T @ self.K
+            T = Ma[:, fa].toarray() + V[fa] @ Va.T - B.T @ self.K
             self.B, self.T = B, cho_factor(0.5 * (T + T.T), check_finite=False)
 
     def _inner(self, R: np.ndarray) -> np.ndarray:
@@ -459,7 +461,7 @@ class _PCGFree:
         S = sp.csc_matrix(S)
         # G's diagonal beyond the low-rank part (>= 0 for a Nystrom bound): a Jacobi term for the remainder
         c = np.maximum(np.diag(Q) - S.diagonal() - (self.V * self.V) @ self.lam, 0.0)
-        self.M = sp.csc_matrix(S + sp.diags(c))
+        self.M = sp.csr_matrix(S + sp.diags(c))  # rows of a free set are taken from it: CSR
         self.first = True  # until a first call leaves X and G consistent (G = Q X - B)
         self.loose = PCG_LOOSE > PCG_SLACK  # rounds before the pivoting's last are solved to PCG_LOOSE tg
         self.rough = np.zeros(B.shape[1], dtype=bool)  # columns whose last solve was loose
