@@ -451,8 +451,9 @@ class _PCGFree:
     solves and |F| k^2 for the capacitance (a fresh set-up, :class:`_Base`), or, for a free set within
     PCG_UPDATE_RANKS k variables of a set-up of the same solve, ~(|R| + |A|) applications of that set-up
     (:class:`_Bordered`: the same operator); then ~2 |F| N per iteration (:func:`_qdot`), against |F|^3 / 3 for
-    its Cholesky. At 64 x 128 (14 solves of one forest run) the updates served 152 of 222 blocks, and the
-    set-ups and products together fell from 6.4 to 4.0-4.7 CPU s (bench/results.md, issue 26 session 19).
+    its Cholesky. On the 14 exact solves of a 64 x 128 forest run the updates served 152 of 222 preconditioners
+    (the same 232 CG iterations) and the solves took 4.6-5.7 CPU s against 6.7-7.6 (bench/results.md, issue 26
+    session 19).
     """
 
     def __init__(self, Q: np.ndarray, B: np.ndarray, S, V: np.ndarray, lam: np.ndarray, tg: np.ndarray,
