@@ -350,7 +350,8 @@ _MAX_BASES = 8
 class _Base:
     """A fresh preconditioner set-up on the free set ``idx`` (|F0|,): ``apply(R) = P_F0F0^-1 R`` for R (|F0|, m),
     P = M + V diag(lam) V^T, M sparse (S + diag(c)): Woodbury with a sparse LU of M_F0F0 and a Cholesky of the
-    k x k capacitance (M CSR, symmetric). ``mask`` (N,) bool: F0; ``pos`` (N,): a variable's row in F0, -1 outside it."""
+    k x k capacitance (M CSR, symmetric). ``mask`` (N,) bool: F0; ``pos`` (N,): a variable's row in F0, -1
+    outside it."""
 
     def __init__(self, idx: np.ndarray, mask: np.ndarray, M, V: np.ndarray, lam: np.ndarray):
         from scipy.linalg import cho_factor
