@@ -138,3 +138,62 @@ def test_edge_solve_with_pcg_matches_the_cholesky_one(prob, monkeypatch):
     assert b.steps >= 2
     c = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=chol, **{**kw, "steps": 1})
     assert not _close(c.x, b.x)
+
+
+def _near_sets(n: int, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """(F0, F) (n,) bool: a base free set of ~60% and one that drops 20 of its variables and adds 15 others."""
+    rng = np.random.default_rng(seed)
+    F0 = rng.random(n) < 0.6
+    F = F0.copy()
+    F[rng.choice(np.flatnonzero(F0), 20, replace=False)] = False
+    F[rng.choice(np.flatnonzero(~F0), 15, replace=False)] = True
+    return F0, F
+
+
+def test_bordered_update_is_the_fresh_preconditioner(prob):
+    """A free set near an earlier one gets P_FF^-1 from that set-up's factors (removed and added variables by
+    bordering): the same operator as a fresh set-up on F, to rounding."""
+    D, Q, B, G, S, ls, lr, _ = prob
+    V, lam = gram_lowrank(G)
+    M = sp.csr_matrix(S + sp.diags(np.maximum(np.diag(Q) - S.diagonal() - (V * V) @ lam, 0.0)))
+    F0, F = _near_sets(Q.shape[0])
+    base = nnls._Base(np.flatnonzero(F0), F0, M, V, lam)
+    idx = np.flatnonzero(F)
+    R = np.random.default_rng(1).standard_normal((idx.size, 3))
+    fresh = nnls._Base(idx, F, M, V, lam).apply(R)
+    upd = nnls._Bordered(base, idx, F, M, V, lam)(R)
+    assert np.abs(upd - fresh).max() <= 1e-8 * np.abs(fresh).max()
+    # broken: the base's inverse restricted to F, without the border, is another operator
+    U = np.zeros((F0.sum(), 3))
+    keep = F0[idx]
+    U[base.pos[idx[keep]]] = R[keep]
+    plain = np.zeros_like(R)
+    plain[keep] = base.apply(U)[base.pos[idx[keep]]]
+    assert not np.abs(plain - fresh).max() <= 1e-8 * np.abs(fresh).max()
+
+
+def test_updated_preconditioners_keep_the_iterations_and_the_minimiser(prob, monkeypatch):
+    """The solve with bordered updates takes the CG iterations of fresh set-ups and ends at the same x."""
+    D, Q, B, G, S, ls, lr, ref = prob
+    r = solve_exact(Q, B, split=(S, *gram_lowrank(G)))
+    assert r.info["pcg_updates"] > 0 and r.info["pcg_setups"] < r.info["pcg_blocks"]
+    monkeypatch.setattr(nnls, "PCG_UPDATE_RANKS", -1.0)  # every preconditioner a fresh set-up
+    f = solve_exact(Q, B, split=(S, *gram_lowrank(G)))
+    assert f.info["pcg_updates"] == 0 and f.info["pcg_setups"] == r.info["pcg_setups"] + r.info["pcg_updates"]
+    assert abs(r.info["cg_iterations"] - f.info["cg_iterations"]) <= 1
+    assert np.all(r.kkt_residual <= KKT_TOL) and _close(r.x, f.x) and _close(r.x, ref.x)
+
+
+def test_products_read_only_the_nonzero_rows():
+    """nnls._qdot: Q V from the runs of V's nonzero rows equals the full product."""
+    rng = np.random.default_rng(2)
+    A = rng.standard_normal((300, 200))
+    Q = A.T @ A
+    V = rng.standard_normal((200, 3))
+    V[rng.random(200) < 0.4] = 0.0  # ~40% zero rows, in many runs
+    full = Q @ V
+    assert np.abs(nnls._qdot(Q, V) - full).max() <= 1e-12 * np.abs(full).max()
+    # broken: dropping the last run of rows
+    s, e = nnls._runs(np.any(V != 0, axis=1))
+    part = Q[:, : e[-2]] @ V[: e[-2]]
+    assert not np.abs(part - full).max() <= 1e-12 * np.abs(full).max()

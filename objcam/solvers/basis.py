@@ -76,8 +76,9 @@ def merge_gram(P: sp.spmatrix, G: np.ndarray, block_bytes: int = 64 * 2**20) -> 
         groups = np.unique(Pb.indices)
         if groups.size == 0:
             continue
-        # (G_b P)^T = P^T G[:, b] (G symmetric), from a C-ordered copy of the block: the fast sparse product
-        K = PT @ np.ascontiguousarray(np.asarray(G[r0:r1], dtype=np.float64).T)  # (N', b)
+        # (G_b P)^T = P^T G[:, b] (G symmetric), from a C-ordered copy of G's columns b (each row's segment: 3x
+        # faster than the transposing copy of G_b, and the same numbers for a symmetric G)
+        K = PT @ np.ascontiguousarray(G[:, r0:r1], dtype=np.float64)  # (N', b)
         out[groups] += sp.csr_matrix(Pb[:, groups]).T @ K.T
     # each row holds every contribution of its group; rounding differs between (i, j) and (j, i): mirror one
     out = np.ascontiguousarray(out)
