@@ -20,10 +20,8 @@ mostly miss, so the hemisphere is partitioned exactly: uniform rays inside the c
 cosine-distributed rays whose directions outside the cone count (those inside it are dropped). On a plane support
 a receiver on the plane sees nothing outside that cone, so it traces the cone only. Every direction set is a
 Sobol sequence with a digital shift per receiver, so the estimate is quasi-Monte Carlo: no texel-dependent noise,
-and the same estimate for every column. The rays are generated in the Dr.Jit computation that traces them
-(:meth:`Gather._rays`, float32; :meth:`Gather._directions` is the float64 numpy statement of the same rays, which
-the tests hold it to): the receivers' (P, R, 3) directions are never made in numpy (issue 25: 5.5 -> 2.2 CPU s of
-the demo's gather set-up).
+and the same estimate for every column. The rays are generated where they are traced (:meth:`Gather._rays`, Dr.Jit,
+float32; :meth:`Gather._directions`: the same rays in numpy, float64, which the tests hold it to).
 
 What it does not model: light reflected by a node varies within the node only through its points' average (a
 node is one value per texel), and a receiver's rays are a finite quadrature of its hemisphere (``rays``); both
@@ -65,10 +63,8 @@ class GatherSettings:
     object_rays: int = 2048  # per pixel inside it: the object and the support beneath it (hemisphere rays)
     node_rays: int = 64  # per node (spread over its points)
     node_points: int = 4  # points per node for its direct light (a multiple of node_shadow_rays)
-    # shadow rays per (node, texel) pair, from a hashed half of the node's points: a node's light reaches a pixel
-    # averaged with hundreds of others by the gather, so its own noise hardly shows (issue 25, session 19: 2
-    # instead of 4 moved the GI bench capture's A by 4% of what a new seed moves it, the dark torus's by 0.06%,
-    # the column error 0.601% -> 0.602%; 1 ray: 8% and 0.604%)
+    # per (node, texel) pair, from a hashed half of its points: the gather averages hundreds of nodes' light per
+    # pixel (2 instead of 4 moved A by 4% of a new seed's change; bench/results.md, issue 25 session 19)
     node_shadow_rays: int = 2
     max_depth: int = 6  # Mitsuba's path depth: 2 = direct only, 3 = one bounce, ...
     max_mesh_nodes: int = 12000  # a mesh with more faces gets face clusters as nodes (voxel x normal buckets)
@@ -384,10 +380,8 @@ class Gather:
         return d, wt
 
     def _rays(self, pos, nrm, keys, n_rays, on_plane):
-        """The rays of :meth:`_directions` as one Dr.Jit computation, lane = receiver * n_rays + ray: (Ray3f, weight
-        Float), both of P * n_rays lanes. The same Sobol points and per-receiver shifts, the same three ways of
-        sampling; the directions are computed in float32 (the numpy version's were cast to float32 for tracing)
-        and only the per-receiver constants (shifts, frames, cone) in numpy, so no (P, R, 3) array is made."""
+        """The rays of :meth:`_directions` (Ray3f, weight Float; lane = receiver * n_rays + ray) computed in Dr.Jit,
+        float32, from per-receiver constants (shifts, frames, cone) made in numpy: no (P, R, 3) array."""
         import drjit as dr
 
         mi = use_mitsuba()
@@ -458,10 +452,7 @@ class Gather:
 
     def directions_dr(self, pos, nrm, keys, n_rays, on_plane) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_rays` as numpy arrays shaped like :meth:`_directions`' ((P, R, 3), (P, R)): for tests."""
-        import drjit as dr
-
         ray, wt = self._rays(pos, nrm, keys, n_rays, on_plane)
-        dr.eval(ray.d, wt)
         P, R = pos.shape[0], int(n_rays)
         return (np.asarray(ray.d, np.float64).T.reshape(P, R, 3), np.asarray(wt, np.float64).reshape(P, R))
 
