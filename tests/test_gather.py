@@ -74,7 +74,8 @@ def test_dr_rays_are_the_numpy_directions(scene):
         assert np.array_equal(w1 > 0, w0 > 0)
     # a test of the test: the shifts of another seed give other directions
     g2 = Gather(geo, g.nodes, seed=1)
-    assert np.abs(g2.directions_dr(pos, nrm, keys, 8, on_plane)[0] - g._directions(pos, nrm, keys, 8, on_plane)[0]).max() > 0.1
+    other = g2.directions_dr(pos, nrm, keys, 8, on_plane)[0]
+    assert np.abs(other - g._directions(pos, nrm, keys, 8, on_plane)[0]).max() > 0.1
 
 
 def test_plane_cells_hold_their_points(scene):
