@@ -404,3 +404,31 @@ def test_settled_prefix_changes_A_less_than_a_new_seed(model):
     assert settled.stats.rays_traced < 0.8 * full.stats.rays_traced
     assert np.linalg.norm(a - b) < 0.5 * np.linalg.norm(c - b), (np.linalg.norm(a - b), np.linalg.norm(c - b))
     assert not np.array_equal(a, b)  # the settled pairs did skip rays
+
+
+def test_auto_stops_measuring_once_the_choice_is_clear(art, tmp_path, monkeypatch):
+    """Issue 25: auto measures its columns in farthest-point order and stops after AUTO_MIN_COLUMNS once the margin
+    is beyond AUTO_STOP_MARGIN (or below its inverse); each column keeps the seeds of its rank among the sorted
+    columns, so the choice and A are those of the full measurement, for 6 of its 16 columns' renders. A noisy target
+    (margin far below 1) stops as well, the other way."""
+    import objcam.transport.auto as au
+
+    folder, _ = art
+    stop, first = au.AUTO_STOP_MARGIN, au.AUTO_MIN_COLUMNS
+    kw = dict(model="auto", auto_columns=16, auto_spp=8)
+    quiet = _run(folder, tmp_path / "quiet", auto_noise=1e-4, **kw)
+    loud = _run(folder, tmp_path / "loud", auto_noise=5.0, **kw)  # margin after 6: 0.29 at noise 0.5, 0.0029 here
+    monkeypatch.setattr(au, "AUTO_STOP_MARGIN", float("inf"))  # the full measurement: every column
+    full = _run(folder, tmp_path / "full", auto_noise=1e-4, **kw)
+    full_loud = _run(folder, tmp_path / "full_loud", auto_noise=5.0, **kw)
+    assert quiet["auto_columns"] == first and full["auto_columns"] == 16
+    assert quiet["auto_margin"] >= stop and full["auto_margin"] > 1
+    assert quiet["auto_choice"] == full["auto_choice"] == "direct+indirect"
+    assert loud["auto_columns"] == first and loud["auto_margin"] <= 1 / stop
+    assert loud["auto_choice"] == full_loud["auto_choice"] == "direct"
+    a, b = load_transport(tmp_path / "quiet", "t0"), load_transport(tmp_path / "full", "t0")
+    assert np.array_equal(a.A, b.A)
+    # the measured prefix is the full measurement's first columns: the margin after them is the one the full run
+    # logged there (the same seeds), and the full run's 16-column margin is within the 4x the stop allows for
+    assert full["auto_margins"][0] == pytest.approx(quiet["auto_margin"], rel=1e-9)
+    assert full["auto_margin"] > quiet["auto_margin"] / 25

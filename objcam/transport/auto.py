@@ -55,9 +55,11 @@ def absolute_noise(values: np.ndarray, noise: float) -> float:
     return noise * (float(np.median(pos)) if pos.size else 1.0)
 
 
-def choose_columns(texel_index: np.ndarray, norms: np.ndarray, n: int, env_height: int) -> np.ndarray:
+def choose_columns(texel_index: np.ndarray, norms: np.ndarray, n: int, env_height: int,
+                   spread_order: bool = False) -> np.ndarray:
     """Up to n kept texels spread over the sphere: farthest-point sampling of their directions, starting from the
-    column with the most energy. Returns positions into ``texel_index``."""
+    column with the most energy. Returns positions into ``texel_index``, sorted (``spread_order``: in the order
+    they were picked, so that every prefix is itself spread over the sphere: :func:`measure` may stop early)."""
     n = min(n, texel_index.size)
     if n == 0:
         return np.zeros(0, np.int64)
@@ -68,7 +70,7 @@ def choose_columns(texel_index: np.ndarray, norms: np.ndarray, n: int, env_heigh
         i = int(np.argmax(dist))
         chosen.append(i)
         dist = np.minimum(dist, 1.0 - d @ d[i])
-    return np.array(sorted(chosen), dtype=np.int64)
+    return np.array(chosen if spread_order else sorted(chosen), dtype=np.int64)
 
 
 #: the indirect light is modelled when its chi-squared effect exceeds this many standard deviations of the
@@ -126,6 +128,7 @@ class AutoReport:
     seconds: float = 0.0
     pinned_effect: float = 0.0  # (scale bias / its noise)^2 where known pixels pin an unknown albedo's scale
     pinned_threshold: float = float("inf")
+    margins: list | None = None  # the margin after each column from min_columns on (measure's early stop)
 
     @property
     def margin(self) -> float:
@@ -144,7 +147,8 @@ class AutoReport:
                 "auto_margin": round(self.margin, 4),
                 **({"auto_pinned_scale_z2": round(self.pinned_effect, 3)} if np.isfinite(self.pinned_threshold)
                    else {}),
-                "auto_columns": self.columns, "auto_choice": self.choice, "auto_seconds": round(self.seconds, 3)}
+                "auto_columns": self.columns, "auto_choice": self.choice, "auto_seconds": round(self.seconds, 3),
+                **({"auto_margins": [round(float(m), 3) for m in self.margins]} if self.margins else {})}
 
 
 def to_rgb(cols: np.ndarray) -> np.ndarray:
@@ -178,43 +182,93 @@ def detail_pixels(object_fraction: np.ndarray, pixel_index: np.ndarray, shape: t
     return img.reshape(-1)[pixel_index]
 
 
-def measure(pr: PathRenderer, direct_cols: np.ndarray, texels: np.ndarray, spp: int, max_depth: int, seed: int,
-            scale: int, target_noise: float, noise_source: str, pins: np.ndarray | None = None) -> AutoReport:
-    """Measure the indirect light of columns ``texels`` against their direct light (C, M, S) and decide by its
-    effect on the fit (:func:`indirect_effect`) at ``target_noise`` (relative, per fitted pixel)."""
-    import time
+#: :func:`measure` stops once the decision is this far from its threshold: margin >= AUTO_STOP_MARGIN or
+#: <= 1 / AUTO_STOP_MARGIN, after at least AUTO_MIN_COLUMNS columns. Measured (the margin after each column on the
+#: demo, the GI bench capture and seven hard-suite captures): after 4 columns the margin was up to 85x the
+#: 16-column one (bunny-el20-light: 665,210 against 7,804; the drop came with the 6th column each time, likely a
+#: direction that lights much of the support and so raises the median pixel the noise is scaled by), after 6 at
+#: most 4.2x above it and 1.5x below; 100 keeps a 24x safety factor over that (bench/results.md, issue 25 session
+#: 19)
+AUTO_STOP_MARGIN = 100.0
+AUTO_MIN_COLUMNS = 6
 
-    t0 = time.perf_counter()
-    d = to_rgb(direct_cols).astype(np.float64)  # (M, 3, S)
-    half = max(1, spp // 2)
-    ia, ib = np.zeros(d.shape[:2]), np.zeros(d.shape[:2])
-    per = []
-    for s, j in enumerate(bar(texels, desc="auto: indirect", unit="col")):
-        env = pr.onehot([j])
-        a = indirect_render(pr, env, half, max_depth, seed * 7919 + 2 * s, scale)
-        b = indirect_render(pr, env, half, max_depth, seed * 7919 + 2 * s + 1, scale)
-        ia += a
-        ib += b
-        m, nz = 0.5 * (a + b), np.linalg.norm(d[:, :, s])
-        if nz > 0:
-            bias2 = np.sum(m**2) - np.sum((a - b) ** 2) / 4
-            per.append(np.sqrt(max(bias2, 0.0)) / nz)
-    dsum = np.linalg.norm(d.sum(axis=2))
+
+def _decide(dsum: np.ndarray, ia: np.ndarray, ib: np.ndarray, target_noise: float,
+            pins: np.ndarray | None) -> tuple[float, float, float, float, float, float, str]:
+    """The decision from the columns measured so far: dsum (M, 3) their direct light summed, ia / ib (M, 3) their
+    indirect light summed over the two half renders. Returns (relative indirect, its measurement noise, effect,
+    threshold, pinned effect, pinned threshold, choice)."""
+    dn = np.linalg.norm(dsum)
     mean = 0.5 * (ia + ib)
     noise2 = np.sum((ia - ib) ** 2) / 4
     bias2 = max(np.sum(mean**2) - noise2, 0.0)
-    rel = float(np.sqrt(bias2) / dsum) if dsum > 0 else 0.0
-    noise = float(np.sqrt(noise2) / dsum) if dsum > 0 else 0.0
+    rel = float(np.sqrt(bias2) / dn) if dn > 0 else 0.0
+    noise = float(np.sqrt(noise2) / dn) if dn > 0 else 0.0
     # the indirect image of the sampled columns' lighting, its Monte Carlo noise removed: scaled to the
     # noise-corrected norm (the raw mean's norm includes the measurement's own noise)
     raw = float(np.linalg.norm(mean))
     indirect = mean * (np.sqrt(bias2) / raw if raw > 0 else 0.0)
-    effect, threshold = indirect_effect(d.sum(axis=2), indirect, target_noise)
-    pin, pin_thr = (0.0, float("inf")) if pins is None else pinned_scale_effect(d.sum(axis=2), indirect,
-                                                                               target_noise, pins)
+    effect, threshold = indirect_effect(dsum, indirect, target_noise)
+    pin, pin_thr = (0.0, float("inf")) if pins is None else pinned_scale_effect(dsum, indirect, target_noise, pins)
     choice = "direct+indirect" if effect > threshold or pin > pin_thr else "direct"
+    return rel, noise, effect, threshold, pin, pin_thr, choice
+
+
+def measure(pr: PathRenderer, direct_cols, texels: np.ndarray, spp: int, max_depth: int, seed: int,
+            scale: int, target_noise: float, noise_source: str, pins: np.ndarray | None = None,
+            seeds: np.ndarray | None = None, stop_margin: float | None = None,
+            min_columns: int = AUTO_MIN_COLUMNS) -> AutoReport:
+    """Measure the indirect light of columns ``texels`` against their direct light and decide by its effect on
+    the fit (:func:`indirect_effect`) at ``target_noise`` (relative, per fitted pixel).
+
+    direct_cols: (C, M, S) float32, or a callable texels (B,) -> (C, M, B) (then computed as they are needed).
+    The columns are measured in the order given; ``seeds`` (S,) ints: each column's render index (its seeds),
+    default its position. ``stop_margin``: stop after ``min_columns`` or more columns once the margin is beyond
+    ``stop_margin`` or below its inverse (None: measure every column)."""
+    import time
+
+    t0 = time.perf_counter()
+    texels = np.asarray(texels, np.int64)
+    idx = np.arange(texels.size) if seeds is None else np.asarray(seeds, np.int64)
+    half = max(1, spp // 2)
+    dsum = ia = ib = None
+    per: list[float] = []
+    margins: list[float] = []
+    d = None
+    done = 0
+    for s, j in enumerate(bar(texels, desc="auto: indirect", unit="col")):
+        if d is None or s >= done:  # direct light of the next columns: the first min_columns at once, then one
+            n_next = max(1, min_columns) if s == 0 else 1
+            if callable(direct_cols):
+                d = to_rgb(direct_cols(texels[s:s + n_next])).astype(np.float64)
+            else:
+                d = to_rgb(direct_cols[:, :, s:s + n_next]).astype(np.float64)
+            first, done = s, s + d.shape[2]
+        dcol = d[:, :, s - first]
+        env = pr.onehot([int(j)])
+        a = indirect_render(pr, env, half, max_depth, seed * 7919 + 2 * int(idx[s]), scale)
+        b = indirect_render(pr, env, half, max_depth, seed * 7919 + 2 * int(idx[s]) + 1, scale)
+        if dsum is None:
+            dsum, ia, ib = np.zeros(dcol.shape), np.zeros(a.shape), np.zeros(b.shape)
+        dsum += dcol
+        ia += a
+        ib += b
+        m, nz = 0.5 * (a + b), np.linalg.norm(dcol)
+        if nz > 0:
+            bias2 = np.sum(m**2) - np.sum((a - b) ** 2) / 4
+            per.append(np.sqrt(max(bias2, 0.0)) / nz)
+        if stop_margin is not None and s + 1 >= min_columns and s + 1 < texels.size:
+            _, _, effect, threshold, pin, pin_thr, _ = _decide(dsum, ia, ib, target_noise, pins)
+            r = AutoReport(0.0, 0.0, 0.0, 0.0, "", 0, "", effect, threshold, 0.0, pin, pin_thr)
+            margins.append(r.margin)
+            if r.margin >= stop_margin or r.margin <= 1.0 / stop_margin:
+                texels = texels[: s + 1]
+                break
+    if dsum is None:
+        return AutoReport(0.0, 0.0, 0.0, float(target_noise), noise_source, 0, "direct")
+    rel, noise, effect, threshold, pin, pin_thr, choice = _decide(dsum, ia, ib, target_noise, pins)
     return AutoReport(rel, noise, float(np.median(per)) if per else 0.0, float(target_noise), noise_source,
-                      int(len(texels)), choice, effect, threshold, time.perf_counter() - t0, pin, pin_thr)
+                      int(len(texels)), choice, effect, threshold, time.perf_counter() - t0, pin, pin_thr, margins)
 
 
 class IndirectCorrection:

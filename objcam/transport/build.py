@@ -171,18 +171,22 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
 
     chosen = "direct" if model == "auto" else model
     if model == "auto" and texel_index.size:
-        from objcam.transport.auto import IndirectCorrection, choose_columns, detail_pixels, measure
+        from objcam.transport.auto import (AUTO_STOP_MARGIN, IndirectCorrection, choose_columns, detail_pixels,
+                                           measure)
         from objcam.transport.path import PathRenderer
 
         noise, source = target_noise if target_noise is not None else (0.01, "assumed")
         if s.auto_noise is not None:  # per photo pixel, as noise_sigma
             noise, source = float(s.auto_noise) / max(int(f), 1), "param"
         pr = PathRenderer(geo, camera, f, samples.pixel_index, s.env_height)
-        pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height)
-        sample_tex = texel_index[pos]
+        # the columns in the order farthest-point sampling picked them (every prefix spread over the sphere), each
+        # seeded by its rank among them, so a full measurement is the one the sorted columns gave; the direct
+        # light of a column is computed only when it is measured (measure stops once the choice is clear)
+        pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height, spread_order=True)
         unknown = parts.unknown_albedo()
-        rep = measure(pr, dm.columns(sample_tex), sample_tex, s.auto_spp, s.auto_max_depth, s.seed,
-                      s.correction_scale, noise, source, pins=~unknown if unknown.any() else None)
+        rep = measure(pr, dm.columns, texel_index[pos], s.auto_spp, s.auto_max_depth, s.seed,
+                      s.correction_scale, noise, source, pins=~unknown if unknown.any() else None,
+                      seeds=np.argsort(np.argsort(pos)), stop_margin=AUTO_STOP_MARGIN)
         metrics.update(rep.metrics())
         chosen = rep.choice
         cpu.lap("auto_measure")

@@ -129,6 +129,18 @@ def _hash_u32(x: np.ndarray) -> np.ndarray:
     return x
 
 
+def _hash_u32_dr(x):
+    """:func:`_hash_u32` of a Dr.Jit UInt64 array, as a UInt32 array (the same bits)."""
+    mi = use_mitsuba()
+    x = mi.UInt32(x & 0xFFFFFFFF) ^ mi.UInt32(x >> 32)
+    x ^= x >> 16
+    x = x * 0x85EBCA6B
+    x ^= x >> 13
+    x = x * 0xC2B2AE35
+    x ^= x >> 16
+    return x
+
+
 def _seed_mix(seed: int) -> int:
     x = (int(seed) * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
     x ^= x >> 16
@@ -357,19 +369,24 @@ class DirectModel:
         st.pairs_zero += int(np.count_nonzero(zero))
         st.pairs_analytic += int(np.count_nonzero(analytic))
         st.pairs_traced += int(pi.size)
+        # flat views: a pair's values are read and written by one linear index (faster than two index arrays)
+        c = out.shape[0]
+        flat = (unshadowed.reshape(c, -1), above.reshape(-1))
+        out_f = out.reshape(c, -1)
+        li = pi * b + bi
         if pi.size:
             # pixels whose samples mix surfaces (or miss) trace all S samples: one round would misweight the mix
             mixed = self.mixed[pi]
             if mixed.any():
                 mi_, mb = pi[mixed], bi[mixed]
                 num, den, _, _ = self._trace_all(mi_, texels[mb])
-                out[:, mi_, mb] = self._estimate(unshadowed, mi_, mb, above, num, den, None).T
-                pi, bi = pi[~mixed], bi[~mixed]
+                out_f[:, li[mixed]] = self._estimate(flat, li[mixed], mi_, num, den, None).T
+                pi, bi, li = pi[~mixed], bi[~mixed], li[~mixed]
         if pi.size:
             tex = texels[bi]
             rnd = self._rounds(pi, tex)
             num, den, n_act, n_vis = self._trace(pi, tex, rnd * self.k, self.k, salt=0)
-            out[:, pi, bi] = self._estimate(unshadowed, pi, bi, above, num, den, rnd).T
+            out_f[:, li] = self._estimate(flat, li, pi, num, den, rnd).T
             if self.refine and self.rounds > 1:
                 # pairs near a shadow boundary (their rays, or their neighbours' in the image, were both blocked
                 # and not) get all S rays instead, one per sub-pixel sample
@@ -378,25 +395,30 @@ class DirectModel:
                     ri, rb = pi[sel], bi[sel]
                     st.pairs_refined += int(sel.sum())
                     num, den, _, _ = self._trace_all(ri, texels[rb])
-                    out[:, ri, rb] = self._estimate(unshadowed, ri, rb, above, num, den, None).T
+                    out_f[:, li[sel]] = self._estimate(flat, li[sel], ri, num, den, None).T
         if self.bg is not None:
             out += self.bg[:, texels].toarray()[None].astype(np.float32)
         return out
 
-    def _estimate(self, unshadowed, pi, bi, above, num, den, rnd) -> np.ndarray:
-        """(T, C) values of traced pairs from their ray sums (rnd: the round traced, None for all samples)."""
-        ab = above[pi, bi]
+    def _estimate(self, flat, li, pi, num, den, rnd) -> np.ndarray:
+        """(T, C) values of traced pairs from their ray sums. flat: the block's unshadowed values (C, M B) and
+        ``above`` (M B,) flattened; li (T,) the pairs' linear indices (pixel * B + texel), pi (T,) their pixels;
+        rnd: the round traced, None for all samples."""
+        unshadowed, above = flat
+        ab = above[li]
+        ia, ib = np.flatnonzero(ab), np.flatnonzero(~ab)
         vals = np.empty_like(num)
         # ratio estimator where the cosine integral is exact
-        ratio = np.divide(num[ab], den[ab], out=np.zeros_like(num[ab]), where=den[ab] > 0)
-        vals[ab] = unshadowed[:, pi[ab], bi[ab]].T * ratio
+        na, da = num[ia], den[ia]
+        ratio = np.divide(na, da, out=np.zeros_like(na), where=da > 0)
+        vals[ia] = unshadowed[:, li[ia]].T * ratio
         # elsewhere: the mean per hit of the samples traced times the pixel's coverage
-        nb = ~ab
         if rnd is None:
-            vals[nb] = num[nb]
+            vals[ib] = num[ib]
         else:
-            scale = self.k * self.coverage[pi[nb]] / np.maximum(self.round_hits[pi[nb], rnd[nb]], 1)
-            vals[nb] = num[nb] * scale[:, None]
+            pn = pi[ib]
+            scale = self.k * self.coverage[pn] / np.maximum(self.round_hits[pn, rnd[ib]], 1)
+            vals[ib] = num[ib] * scale[:, None]
         return vals
 
     def _boundary(self, b: int, pi, bi, n_act, n_vis, analytic) -> np.ndarray:
@@ -524,18 +546,17 @@ class DirectModel:
             b = min(pix.size, a + per)
             t = b - a
             self.stats.rays_traced += t * k if test else 0
-            pa, ta = pix[a:b], tex[a:b]
-            # per-pair digital shifts of the direction points (hash of global pixel, texel, seed, salt)
-            key = (self.s.pixel_index[pa].astype(np.uint64) * np.uint64(0x9E3779B1)
-                   + ta.astype(np.uint64) * np.uint64(0x85EBCA77)
-                   + np.uint64(_seed_mix(self.seed) ^ (0x5BD1E995 * salt & 0xFFFFFFFF)))
-            h1 = _hash_u32(key).astype(np.uint32)
-            h2 = _hash_u32(key + np.uint64(0x632BE59B)).astype(np.uint32)
-            row = mi.UInt32(padded(ta // w_env, np.uint32))  # objcam.dr_memory
-            col = mi.Float(padded(ta % w_env, np.float32))
-            base = mi.UInt32(padded(pa * n_sub + first[a:b], np.uint32))
+            pa = mi.UInt32(padded(pix[a:b], np.uint32))  # objcam.dr_memory
+            ta = mi.UInt32(padded(tex[a:b], np.uint32))
             sub0 = mi.UInt32(padded(first[a:b], np.uint32))
-            H1, H2 = mi.UInt32(padded(h1)), mi.UInt32(padded(h2))
+            # per-pair digital shifts of the direction points (hash of global pixel, texel, seed, salt), computed
+            # in the kernel: the bits of _hash_u32 on the same uint64 key
+            key = (mi.UInt64(dr.gather(mi.UInt32, d["G"], pa)) * 0x9E3779B1 + mi.UInt64(ta) * 0x85EBCA77
+                   + mi.UInt64(dr.opaque(mi.UInt32, _seed_mix(self.seed) ^ (0x5BD1E995 * salt & 0xFFFFFFFF))))
+            H1, H2 = _hash_u32_dr(key), _hash_u32_dr(key + 0x632BE59B)
+            row = ta // w_env
+            col = mi.Float(ta - row * w_env)
+            base = pa * n_sub + sub0
             ct = dr.gather(mi.Float, d["CT"], row)
             dc = dr.gather(mi.Float, d["CB"], row) - ct
             om = dr.gather(mi.Float, d["OM"], row) * scale

@@ -20,7 +20,8 @@ mostly miss, so the hemisphere is partitioned exactly: uniform rays inside the c
 cosine-distributed rays whose directions outside the cone count (those inside it are dropped). On a plane support
 a receiver on the plane sees nothing outside that cone, so it traces the cone only. Every direction set is a
 Sobol sequence with a digital shift per receiver, so the estimate is quasi-Monte Carlo: no texel-dependent noise,
-and the same estimate for every column.
+and the same estimate for every column. The rays are generated where they are traced (:meth:`Gather._rays`, Dr.Jit,
+float32; :meth:`Gather._directions`: the same rays in numpy, float64, which the tests hold it to).
 
 What it does not model: light reflected by a node varies within the node only through its points' average (a
 node is one value per texel), and a receiver's rays are a finite quadrature of its hemisphere (``rays``); both
@@ -62,7 +63,9 @@ class GatherSettings:
     object_rays: int = 2048  # per pixel inside it: the object and the support beneath it (hemisphere rays)
     node_rays: int = 64  # per node (spread over its points)
     node_points: int = 4  # points per node for its direct light (a multiple of node_shadow_rays)
-    node_shadow_rays: int = 4  # shadow rays per (node, texel) pair
+    # per (node, texel) pair, from a hashed half of its points: the gather averages hundreds of nodes' light per
+    # pixel (2 instead of 4 moved A by 4% of a new seed's change; bench/results.md, issue 25 session 19)
+    node_shadow_rays: int = 2
     max_depth: int = 6  # Mitsuba's path depth: 2 = direct only, 3 = one bounce, ...
     max_mesh_nodes: int = 12000  # a mesh with more faces gets face clusters as nodes (voxel x normal buckets)
     rings_per_octave: int = 8  # plane support: polar grid rings per doubling of the radius
@@ -376,16 +379,82 @@ class Gather:
                 wt[idx, nc:] = np.where(in_cone, 0.0, 1.0 / nh)
         return d, wt
 
-    def _directions_split(self, pos, nrm, keys, n_rays, on_plane):
-        """:meth:`_directions` over the receivers split into one slice per core, on threads (numpy releases the
-        GIL on these large arrays; every receiver's rays depend on it alone, so the result is the same bits)."""
-        n = min(cores(), max(1, pos.shape[0] // 256))
-        if n <= 1:
-            return self._directions(pos, nrm, keys, n_rays, on_plane)
-        cuts = np.linspace(0, pos.shape[0], n + 1).astype(int)
-        parts = parallel_map(lambda ab: self._directions(pos[ab[0]:ab[1]], nrm[ab[0]:ab[1]], keys[ab[0]:ab[1]], n_rays,
-                                                         on_plane[ab[0]:ab[1]]), list(zip(cuts[:-1], cuts[1:])))
-        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    def _rays(self, pos, nrm, keys, n_rays, on_plane):
+        """The rays of :meth:`_directions` (Ray3f, weight Float; lane = receiver * n_rays + ray) computed in Dr.Jit,
+        float32, from per-receiver constants (shifts, frames, cone) made in numpy: no (P, R, 3) array."""
+        import drjit as dr
+
+        mi = use_mitsuba()
+        P, R = pos.shape[0], int(n_rays)
+        lat = sobol4(R)
+        s1, s2 = _shifts(keys, self.seed)
+        t3, t4 = _shifts(keys, self.seed + 7919)
+        vec = self.centre[None, :] - pos
+        dist = np.linalg.norm(vec, axis=1)
+        outside = dist > self.radius
+        axis = vec / np.maximum(dist, 1e-30)[:, None]
+        cos_a = np.where(outside, np.sqrt(np.clip(1 - (self.radius / np.maximum(dist, 1e-30)) ** 2, 0, 1)), -1.0)
+        cone_only = outside & on_plane
+        split = outside & ~on_plane
+        kind = np.where(cone_only, 1, np.where(split, 2, 0)).astype(np.uint32)  # 0 cosine, 1 cone, 2 both
+        t, b = _frames(nrm)
+        ta, ba = _frames(axis)
+        omega = 2 * np.pi * (1 - cos_a)
+        nc = R // 2
+        nh = R - nc
+        # per receiver: the weight of a cone ray per unit cosine (its share: R rays, or nc in a split receiver)
+        wcone = np.where(split, omega / (np.pi * max(nc, 1)), omega / (np.pi * R))
+
+        def f3(a):
+            a = np.asarray(a, np.float32)
+            return mi.Vector3f(*(padded(a[:, i]) for i in range(3)))  # objcam.dr_memory
+
+        lane = dr.arange(mi.UInt32, P * R)
+        rcv = lane // dr.opaque(mi.UInt32, R)
+        ray = lane - rcv * dr.opaque(mi.UInt32, R)
+        g3 = lambda a: dr.gather(mi.Vector3f, a, rcv)  # noqa: E731
+        g1 = lambda a, T=mi.Float: dr.gather(T, a, rcv)  # noqa: E731
+        N, T, B, TA, BA, AX = (g3(f3(a)) for a in (nrm, t, b, ta, ba, axis))
+        K = g1(mi.UInt32(padded(kind)), mi.UInt32)
+        CA = g1(mi.Float(padded(cos_a, np.float32)))
+        WC = g1(mi.Float(padded(wcone, np.float32)))
+        OMC = g1(mi.Float(padded(1 - cos_a, np.float32)))
+        LU, LV = mi.UInt32(padded(lat[:, 0])), mi.UInt32(padded(lat[:, 1]))
+        inv24 = float(2.0**-24)
+
+        def unit(x, shift):
+            return (mi.Float((x ^ shift) >> 8) + 0.5) * inv24
+
+        # second half of a split receiver: cosine rays of its own points 0 .. nh - 1, another shift
+        second = (K == 2) & (ray >= nc)
+        ri = dr.select(second, ray - nc, ray)
+        u = unit(dr.gather(mi.UInt32, LU, ri), dr.select(second, g1(mi.UInt32(padded(t3)), mi.UInt32),
+                                                          g1(mi.UInt32(padded(s1)), mi.UInt32)))
+        w = unit(dr.gather(mi.UInt32, LV, ri), dr.select(second, g1(mi.UInt32(padded(t4)), mi.UInt32),
+                                                          g1(mi.UInt32(padded(s2)), mi.UInt32)))
+        sphi, cphi = dr.sincos(2 * np.pi * w)
+        # cosine-distributed (Malley) about the normal
+        r = dr.sqrt(u)
+        d_cos = (r * cphi) * T + (r * sphi) * B + dr.safe_sqrt(1 - u) * N
+        # uniform in the cone about the axis (1 - cos from the cone's 1 - cos_a, given in float64: a distant
+        # receiver's cone is narrow, and 1 - ct^2 in float32 would lose its sine)
+        one_m = u * OMC
+        ct = 1 - one_m
+        st = dr.safe_sqrt(one_m * (2 - one_m))
+        d_cone = (st * cphi) * TA + (st * sphi) * BA + ct * AX
+        cone = (K == 1) | ((K == 2) & ~second)
+        d = dr.select(cone, d_cone, d_cos)
+        w_cone = dr.maximum(dr.dot(d_cone, N), 0) * WC
+        w_cos = dr.select(second, dr.select(dr.dot(d_cos, AX) > CA, 0.0, 1.0 / nh), 1.0 / R)
+        wt = dr.select(cone, w_cone, w_cos)
+        o = g3(f3(pos))
+        return mi.Ray3f(mi.Point3f(o), d), wt
+
+    def directions_dr(self, pos, nrm, keys, n_rays, on_plane) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_rays` as numpy arrays shaped like :meth:`_directions`' ((P, R, 3), (P, R)): for tests."""
+        ray, wt = self._rays(pos, nrm, keys, n_rays, on_plane)
+        P, R = pos.shape[0], int(n_rays)
+        return (np.asarray(ray.d, np.float64).T.reshape(P, R, 3), np.asarray(wt, np.float64).reshape(P, R))
 
     def matrix(self, pos: np.ndarray, nrm: np.ndarray, weight: np.ndarray, rows: np.ndarray, n_rows: int,
                keys: np.ndarray, n_rays: int, on_plane: np.ndarray) -> sp.csr_matrix:
@@ -400,23 +469,20 @@ class Gather:
         nodes = self.nodes
         out_r, out_c, out_w = [], [], []
         per = max(1, _BATCH // max(1, n_rays))
+        R = int(n_rays)
         for a in range(0, pos.shape[0], per):
             b = min(pos.shape[0], a + per)
-            d, wt = self._directions_split(pos[a:b], nrm[a:b], keys[a:b], n_rays, on_plane[a:b])
-            keep = wt > 0
-            pi, ri = np.nonzero(keep)
-            o = pos[a:b][pi].astype(np.float32)
-            dd = d[pi, ri].astype(np.float32)
-            ray = mi.Ray3f(mi.Point3f(*(padded(o[:, i]) for i in range(3))),
-                           mi.Vector3f(*(padded(dd[:, i]) for i in range(3))))
-            si = self.geo.mi_scene.ray_intersect(ray)
+            ray, wt = self._rays(pos[a:b], nrm[a:b], keys[a:b], R, on_plane[a:b])  # lane = receiver * R + ray
+            active = wt > 0
+            si = self.geo.mi_scene.ray_intersect(ray, active)
             valid = si.is_valid()
             shp = dr.reinterpret_array(mi.UInt32, si.shape)
             # only the front side of a surface reflects (Mitsuba's diffuse BSDF is one-sided)
             front = valid & (dr.dot(si.n, ray.d) < 0)
-            dr.eval(front, shp, si.prim_index, si.p)
-            hit = np.asarray(front, bool)
-            self.stats.rays += int(pi.size)
+            dr.eval(front, shp, si.prim_index, si.p, wt)
+            wt_np = np.asarray(wt)
+            hit = np.flatnonzero(np.asarray(front, bool))  # lanes
+            self.stats.rays += int(np.count_nonzero(wt_np > 0))
             sid = np.asarray(shp, np.int64)[hit]
             prim = np.asarray(si.prim_index, np.int64)[hit]
             node = np.full(sid.size, -1, np.int64)
@@ -424,7 +490,7 @@ class Gather:
             node[on_o] = nodes.object_face_node[prim[on_o]]
             on_s = sid == self.geo.support_id
             if nodes.grid is not None:
-                p = np.asarray(si.p, np.float64).T[hit][on_s]
+                p = np.asarray(si.p)[:2, hit[on_s]].T.astype(np.float64)
                 cell = nodes.grid.cell_of(p[:, :2])
                 node[on_s] = np.where(cell >= 0, nodes.n_object + cell, -1)
             else:
@@ -432,11 +498,12 @@ class Gather:
             ok = node >= 0
             live = np.where(ok, nodes.live[np.maximum(node, 0)], -1)
             ok &= live >= 0
-            hp, hr = pi[hit][ok], ri[hit][ok]
+            hl = hit[ok]
+            hp = hl // R
             self.stats.hits += int(ok.sum())
             out_r.append(rows[a:b][hp])
             out_c.append(live[ok])
-            out_w.append(wt[hp, hr] * weight[a:b][hp])
+            out_w.append(wt_np[hl].astype(np.float64) * weight[a:b][hp])
         r = np.concatenate(out_r) if out_r else np.zeros(0, np.int64)
         c = np.concatenate(out_c) if out_c else np.zeros(0, np.int64)
         w = np.concatenate(out_w) if out_w else np.zeros(0)
@@ -552,6 +619,7 @@ class GatherIndirect:
                     _, j = tree.query(ps.pos[pick, first][ok])  # the nearest of the object nodes' points
                     self.pixel_object_node[rows[ok]] = node_of[j]
         self.E = None  # (C, S, N) float32: the nodes' direct light of every column, kept for bounce_parts
+        self._blocks = None  # one channel: the gather matrices' row blocks, one per thread (columns)
         self.seconds_setup = time.perf_counter() - t0
         self.seconds_columns = 0.0
 
@@ -564,9 +632,19 @@ class GatherIndirect:
             if self.E is None:
                 self.E = np.zeros((self.channels, E.shape[1], self.texel_index.size), np.float32)
             self.E[:, :, a:b] = E
-        # the channels' sparse products are independent (scipy releases the GIL): one per core
-        out = parallel_map(lambda c: self.W_pix[c] @ _propagate(E[c], self.W_node[c] if self.bounces else None,
-                                                                self.bounces), range(self.channels))
+        # the channels' sparse products are independent (scipy releases the GIL): one per core; one channel (a
+        # grey albedo): its products split by rows instead
+        if self.channels == 1:
+            if self._blocks is None:
+                self._blocks = {"pix": row_blocks(self.W_pix[0]),
+                                "node": row_blocks(self.W_node[0]) if self.bounces else None}
+            bl = self._blocks
+            mul = (lambda W, X: _blocks_matmul(bl["node"], X)) if self.bounces else None
+            out = [_blocks_matmul(bl["pix"], _propagate(E[0], self.W_node[0] if self.bounces else None, self.bounces,
+                                                        mul=mul))]
+        else:
+            out = parallel_map(lambda c: self.W_pix[c] @ _propagate(E[c], self.W_node[c] if self.bounces else None,
+                                                                    self.bounces), range(self.channels))
         self.seconds_columns += time.perf_counter() - t0
         return np.stack(out).astype(np.float32)
 
@@ -607,15 +685,38 @@ def _csr(parts: dict, name: str) -> sp.csr_matrix | None:
                          shape=tuple(int(v) for v in parts[f"{name}_shape"]))
 
 
-def _propagate(E: np.ndarray, W_node: sp.csr_matrix | None, bounces: int, scale: np.ndarray | None = None
-               ) -> np.ndarray:
+def row_blocks(W: sp.csr_matrix) -> list[sp.csr_matrix]:
+    """W's rows cut into one block of about equal nonzeros per thread of Dr.Jit's pool (every core in-process; a
+    Dask worker's share of its host: objcam.transport.shards); [W] alone when small or on one thread."""
+    import drjit as dr
+
+    n = min(cores(), max(1, int(dr.thread_count())))
+    if n <= 1 or W.nnz < (1 << 15) or W.shape[0] < 2 * n:
+        return [W]
+    cuts = np.unique(np.searchsorted(W.indptr, np.linspace(0, W.nnz, n + 1), side="left").clip(0, W.shape[0]))
+    cuts[0], cuts[-1] = 0, W.shape[0]
+    return [W[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+
+
+def _blocks_matmul(blocks: list[sp.csr_matrix], X: np.ndarray) -> np.ndarray:
+    """W @ X (dense X) for W given as :func:`row_blocks`, the blocks on threads: scipy's product releases the
+    GIL, and a row's sum is computed the same way whichever block holds it, so the result is the bits of W @ X."""
+    if len(blocks) == 1:
+        return blocks[0] @ X
+    return np.concatenate(parallel_map(lambda B: B @ X, blocks), axis=0)
+
+
+def _propagate(E: np.ndarray, W_node: sp.csr_matrix | None, bounces: int, scale: np.ndarray | None = None,
+               mul=None) -> np.ndarray:
     """(S, B) light leaving the nodes, summed over their direct light E (S, B) and ``bounces`` node-to-node
-    gathers; ``scale`` (S,) multiplies every node's albedo (E and each gather scale by row: the node reflects)."""
+    gathers; ``scale`` (S,) multiplies every node's albedo (E and each gather scale by row: the node reflects).
+    ``mul(W_node, L)``: the sparse-dense product (default ``W_node @ L``)."""
     s = None if scale is None else scale[:, None]
     L = E if s is None else E * s
     acc = L.copy()
     for _ in range(bounces):
-        L = W_node @ L if s is None else s * (W_node @ L)
+        WL = W_node @ L if mul is None else mul(W_node, L)
+        L = WL if s is None else s * WL
         acc += L
     return acc
 
