@@ -9,6 +9,7 @@ import scipy.sparse as sp
 
 import objcam.solvers.edges as edges
 import objcam.solvers.nnls as nnls
+import objcam.solvers.products as products
 from objcam.envmap import EnvGrid
 from objcam.solvers import absolute_weights, difference_operator, regularized_gram, solve_exact
 from objcam.solvers.edges import solve_edges
@@ -185,15 +186,15 @@ def test_updated_preconditioners_keep_the_iterations_and_the_minimiser(prob, mon
 
 
 def test_products_read_only_the_nonzero_rows():
-    """nnls._qdot: Q V from the runs of V's nonzero rows equals the full product."""
+    """products.sym_dot: Q V from the runs of V's nonzero rows equals the full product."""
     rng = np.random.default_rng(2)
     A = rng.standard_normal((300, 200))
     Q = A.T @ A
     V = rng.standard_normal((200, 3))
     V[rng.random(200) < 0.4] = 0.0  # ~40% zero rows, in many runs
     full = Q @ V
-    assert np.abs(nnls._qdot(Q, V) - full).max() <= 1e-12 * np.abs(full).max()
+    assert np.abs(products.sym_dot(Q, V) - full).max() <= 1e-12 * np.abs(full).max()
     # broken: dropping the last run of rows
-    s, e = nnls._runs(np.any(V != 0, axis=1))
+    s, e = products.nonzero_runs(np.any(V != 0, axis=1))
     part = Q[:, : e[-2]] @ V[: e[-2]]
     assert not np.abs(part - full).max() <= 1e-12 * np.abs(full).max()

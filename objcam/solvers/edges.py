@@ -47,7 +47,8 @@ import scipy.sparse as sp
 from objcam.solvers.basis import group_sizes, merge_gram
 from objcam.solvers.lowrank import gram_lowrank
 from objcam.solvers.multilevel import MIN_UNKNOWNS, aggregates
-from objcam.solvers.nnls import PCG_MIN_UNKNOWNS, SolveResult, _qdot, solve_exact
+from objcam.solvers.nnls import PCG_MIN_UNKNOWNS, SolveResult, solve_exact
+from objcam.solvers.products import sym_dot
 from objcam.solvers.regularization import regularized_gram
 
 
@@ -163,8 +164,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         data = 0.0
         for G, B, ch in zip(grams, rhs, chans):
             Xc = X[:, list(ch)]
-            # G symmetric: the row-major product reading only the rows where x is nonzero (nnls._qdot)
-            data += float(np.sum(Xc * _qdot(G, Xc)) - 2 * np.sum(B * Xc))
+            # G symmetric: the row-major product reading only the rows where x is nonzero (objcam.solvers.products.sym_dot)
+            data += float(np.sum(Xc * sym_dot(G, Xc)) - 2 * np.sum(B * Xc))
         prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
         return data + float(yy.sum()) + lr_abs * float(np.einsum("n,nc,nc->", ridge_w, X, X)) + prior
 

@@ -35,6 +35,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from objcam.solvers import multilevel
+from objcam.solvers.products import sym_dot
 from objcam.threads import single_blas_thread
 
 
@@ -306,43 +307,6 @@ PCG_MAX_IT = 60
 PCG_UPDATE_RANKS = 1.0
 
 
-#: products with Q read only the rows where the vector is nonzero, as runs of contiguous rows (gaps of at most
-#: _RUNS_GAP zero rows are read through: one BLAS call costs about as much as a few rows); a plain product when
-#: more than _RUNS_MAX_SHARE of the rows are nonzero or the runs are more than _RUNS_MAX
-_RUNS_GAP = 4
-_RUNS_MAX_SHARE = 0.95
-_RUNS_MAX = 256
-
-
-def _runs(nz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(starts, ends) of the runs of True in ``nz`` (N,) bool, runs closer than _RUNS_GAP joined."""
-    d = np.diff(np.concatenate(([0], nz.astype(np.int8), [0])))
-    s, e = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
-    if s.size > 1:
-        keep = np.concatenate(([True], s[1:] - e[:-1] > _RUNS_GAP))
-        s, e = s[keep], np.concatenate((e[:-1][keep[1:]], e[-1:]))
-    return s, e
-
-
-def _qdot(Q: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """Q V (N, m) for a symmetric Q (N, N) and V (N, m) with few columns, reading only Q's rows where V is nonzero.
-
-    As (V^T Q)^T: the row-major product reads Q ~1.7x faster for a few columns (a 3,131 x 3,131 Q times 3
-    columns: 10 against 17 ms on one core). V of a free-block solve is 0 off its free rows: Q V = sum over V's
-    runs of nonzero rows of Q[a:b]^T V[a:b], a BLAS product on contiguous rows of Q each, accumulated in place,
-    and the zero set's rows are never read (3 columns 69-87% free: 6.9 against 8.3 ms)."""
-    nz = np.any(V != 0, axis=1)
-    starts, ends = _runs(nz)
-    if nz.mean() > _RUNS_MAX_SHARE or starts.size > _RUNS_MAX:
-        return (np.ascontiguousarray(V.T) @ Q).T
-    from scipy.linalg import blas
-
-    out = np.zeros(V.shape, order="F")
-    for a, b in zip(starts, ends):
-        out = blas.dgemm(1.0, Q[a:b].T, V[a:b], beta=1.0, c=out, overwrite_c=1)
-    return out
-
-
 #: fresh preconditioner set-ups kept per solve as bases for bordered updates (the newest first)
 _MAX_BASES = 8
 
@@ -451,7 +415,7 @@ class _PCGFree:
     solved by Cholesky (:func:`_solve_free`), counted in ``stats``. Cost per block: one sparse LU, k sparse
     solves and |F| k^2 for the capacitance (a fresh set-up, :class:`_Base`), or, for a free set within
     PCG_UPDATE_RANKS k variables of a set-up of the same solve, ~(|R| + |A|) applications of that set-up
-    (:class:`_Bordered`: the same operator); then ~2 |F| N per iteration (:func:`_qdot`), against |F|^3 / 3 for
+    (:class:`_Bordered`: the same operator); then ~2 |F| N per iteration (:func:`objcam.solvers.products.sym_dot`), against |F|^3 / 3 for
     its Cholesky. On the 14 exact solves of a 64 x 128 forest run the updates served 152 of 222 preconditioners
     (the same 232 CG iterations) and the solves took 4.6-5.7 CPU s against 6.7-7.6 (bench/results.md, issue 26
     session 19).
@@ -500,8 +464,8 @@ class _PCGFree:
         return base.apply
 
     def _product(self, V: np.ndarray) -> np.ndarray:
-        """Q V (N, m) for V (N, m): :func:`_qdot`."""
-        return _qdot(self.Q, V)
+        """Q V (N, m) for V (N, m): :func:`objcam.solvers.products.sym_dot`."""
+        return sym_dot(self.Q, V)
 
     def _start(self, X: np.ndarray, G: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(X0, Q X0) for columns whose X (N, m), G = Q X - B (N, m) are the previous round's and F (N, m) the new
@@ -755,7 +719,7 @@ def solve_exact(
                 pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats)
                 pcg(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=pcg)
-                QX = _qdot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective
+                QX = sym_dot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective
                 if converged and float(kkt_residual(Ql, Bl, np.maximum(Xl, 0.0), QX=QX).max()) > tol:
                     # what PCG left above tol (not seen on the bench's solves): Cholesky blocks from its free set
                     restarts += 1
