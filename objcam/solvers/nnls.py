@@ -178,6 +178,7 @@ class _Stats:
     pcg_tightened: int = 0  # columns re-solved to PCG_SLACK after a loose round showed nothing infeasible
     pcg_setups: int = 0  # fresh preconditioner set-ups (sparse LU + k solves)
     pcg_updates: int = 0  # preconditioners made from a base's factors by a bordered update (_Bordered)
+    chol_updates: int = 0  # free blocks solved from an earlier block's Cholesky factor (_UpdatedFree)
 
 
 def _free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
@@ -188,8 +189,9 @@ def _free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
     return keys
 
 
-def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
-    """For each column in ``cols``: x_F = Q_FF^{-1} b_F, x_G = 0, g = Q x - b. Groups identical F patterns."""
+def _solve_free(Q, B, F, cols, X, G, stats: _Stats, fac: _Factor | None = None) -> None:
+    """For each column in ``cols``: x_F = Q_FF^{-1} b_F, x_G = 0, g = Q x - b. Groups identical F patterns.
+    ``fac``: the factor of the (one) free block, already made and counted."""
     if len(cols) == 0:
         return
     for group in _free_groups(F, cols).values():
@@ -199,9 +201,11 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
             G[:, group] = -B[:, group]
             continue
         # the block factorised in place; the refinement's residual and the gradient from products with Q
-        fac = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
-        stats.factorizations += 1
-        stats.max_jitter = max(stats.max_jitter, fac.jitter)
+        f = fac
+        if f is None:
+            f = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
+            stats.factorizations += 1
+            stats.max_jitter = max(stats.max_jitter, f.jitter)
         stats.largest_block = max(stats.largest_block, idx.size)
         Bf = B[np.ix_(idx, group)]
         full = np.zeros((Q.shape[0], len(group)))
@@ -210,10 +214,129 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
             full[idx] = xs
             return Bf - (Q @ full)[idx]
 
-        xs = fac.solve(Bf, refine=1, residual=residual)
+        xs = f.solve(Bf, refine=1, residual=residual)
         X[np.ix_(idx, group)] = xs
         full[idx] = xs
         G[:, group] = Q @ full - B[:, group]
+
+
+#: a free block F is solved from an earlier block's Cholesky factor over a set S (:class:`_UpdatedFree`) when the
+#: variables to add (F \\ S) and to hold at zero (S \\ F) number at most this share of |F| (else a fresh
+#: factorisation): an update costs ~|S|^2 of triangular solves per such variable, a factorisation |F|^3 / 3, so
+#: 1/3 is the flop break-even; on the 28 dumped 32 x 64 solves of two captures 0.05 / 0.1 / 0.25 measured
+#: 0.49 / 0.49 / 0.49 CPU s (forest) and 0.33 / 0.34 / 0.36 (courtyard), 0 (off) 0.61 and 0.35
+#: (bench/results.md, issue 26 session 19): 0.1, the least over both
+CHOL_UPDATE_SHARE = 0.1
+
+
+@dataclass
+class _CholBase:
+    """A Cholesky factor ``Q_SS = U^T U`` (U (s, s) upper, Fortran order) over the ordered variables S (s,)."""
+
+    S: np.ndarray
+    U: np.ndarray
+
+
+class _UpdatedFree:
+    """Per-block Cholesky solves that reuse the factors of earlier blocks of the same solve.
+
+    Between pivoting rounds a column's free set changes by a few variables, and the colour columns' free sets
+    differ by a few. A new free set F is solved from the stored factor over S closest to it (fewest variables
+    to add and to hold at zero): the added variables A are appended by a bordered factor
+    ``[[U, K], [0, chol(Q_AA - K^T K)]]`` with ``K = U^-T Q_SA``, and the variables Z = S \\ F held at zero by the
+    Schur complement over Z, as in :class:`_SchurFree` (``W = U^-T E_Z``, ``(Q^-1)_ZZ = W^T W``). The result is
+    F's exact block solution to rounding, refined once against Q like the fresh factorisation's. A set too far
+    from every stored factor (:data:`CHOL_UPDATE_SHARE`) gets a fresh factorisation, stored for later blocks.
+    Factors live for one ``solve_exact`` (a reweighted solve has a new Q: nothing carries over)."""
+
+    def __init__(self, Q: np.ndarray, B: np.ndarray, stats: _Stats):
+        self.Q, self.B, self.stats = Q, B, stats
+        self.bases: dict[int, _CholBase] = {}  # column -> the factor its last block was solved with
+
+    def _closest(self, inF: np.ndarray, nf: int) -> tuple[_CholBase | None, int]:
+        """The stored base with the fewest added + zeroed variables for the free set ``inF`` (N,) bool, and
+        that count."""
+        best, cost = None, nf + 1
+        for base in {id(b): b for b in self.bases.values()}.values():
+            inS = inF[base.S]
+            c = int(base.S.size - inS.sum()) + (nf - int(inS.sum()))  # |S \ F| + |F \ S|
+            if c < cost:
+                best, cost = base, c
+        return best, cost
+
+    def _border(self, base: _CholBase, add: np.ndarray) -> _CholBase | None:
+        """base extended by the variables ``add``; None when their Schur complement is not positive definite."""
+        from scipy.linalg import solve_triangular
+
+        s, a = base.S.size, add.size
+        K = solve_triangular(base.U, self.Q[np.ix_(base.S, add)], trans="T", lower=False, check_finite=False)
+        Saa = _free_block(self.Q, add) - K.T @ K
+        Uaa, info = lapack.dpotrf(Saa, lower=0, clean=1, overwrite_a=1)
+        if info != 0:
+            return None
+        U = np.zeros((s + a, s + a), order="F")
+        U[:s, :s] = base.U
+        U[:s, s:] = K
+        U[s:, s:] = Uaa
+        return _CholBase(np.concatenate([base.S, add]), U)
+
+    def __call__(self, F: np.ndarray, cols, X: np.ndarray, G: np.ndarray) -> None:
+        from scipy.linalg import cho_factor, cho_solve, solve_triangular
+
+        Q, B, stats = self.Q, self.B, self.stats
+        for group in _free_groups(F, cols).values():
+            inF = F[:, group[0]]
+            idx = np.flatnonzero(inF)
+            X[:, group] = 0.0
+            if idx.size == 0:
+                G[:, group] = -B[:, group]
+                continue
+            base, cost = self._closest(inF, idx.size)
+            if base is not None and 0 < cost <= CHOL_UPDATE_SHARE * idx.size:
+                add = idx[~np.isin(idx, base.S, assume_unique=True)]
+                base = self._border(base, add) if add.size else base
+            elif base is None or cost > 0:
+                base = None
+            if base is None:  # a fresh factorisation (with _Factor's jitter fallback when singular)
+                fac = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
+                stats.factorizations += 1
+                stats.max_jitter = max(stats.max_jitter, fac.jitter)
+                if fac.jitter > 0:  # a jittered factor is not Q's: solve with it alone, store nothing
+                    _solve_free(Q, B, F, group, X, G, stats, fac=fac)
+                    continue
+                base = _CholBase(idx, np.asfortranarray(fac.c))
+            else:
+                stats.chol_updates += 1
+            stats.largest_block = max(stats.largest_block, idx.size)
+            for c in group:
+                self.bases[c] = base
+            zpos = np.flatnonzero(~inF[base.S])
+            U = base.U
+            if zpos.size:
+                E = np.zeros((base.S.size, zpos.size))
+                E[zpos, np.arange(zpos.size)] = 1.0
+                W = solve_triangular(U, E, trans="T", lower=False, check_finite=False)
+                Sz = cho_factor(W.T @ W, check_finite=False)
+
+            def constrained(R: np.ndarray) -> np.ndarray:
+                """Q_FF^-1 R_F on S's order, 0 on Z (R (s, m))."""
+                x, info = lapack.dpotrs(U, R, lower=0)
+                if zpos.size:
+                    mu = -cho_solve(Sz, x[zpos], check_finite=False)
+                    x = x + solve_triangular(U, W @ mu, lower=False, check_finite=False)
+                    x[zpos] = 0.0
+                return x
+
+            Bs = B[np.ix_(base.S, group)]
+            full = np.zeros((Q.shape[0], len(group)))
+            xs = constrained(Bs)
+            full[base.S] = xs
+            R = Bs - (Q @ full)[base.S]  # one step of iterative refinement against Q, as _Factor.solve
+            R[zpos] = 0.0
+            xs = xs + constrained(R)
+            full[base.S] = xs
+            X[:, group] = full
+            G[:, group] = Q @ full - B[:, group]
 
 
 class _SchurFree:
@@ -765,6 +888,7 @@ def solve_exact(
                     QX = None
             elif use_schur:
                 free = _SchurFree(Ql, Bl, stats)
+                blocks = _UpdatedFree(Ql, Bl, stats) if CHOL_UPDATE_SHARE > 0 else None
                 limit = live.size // 3
 
                 def guarded(F_, cols_, X_, G_):
@@ -772,7 +896,9 @@ def solve_exact(
                     # complement over its zero set
                     cols_ = np.asarray(cols_)
                     many = (~F_[:, cols_]).sum(axis=0) > limit
-                    if many.any():
+                    if many.any() and blocks is not None:
+                        blocks(F_, cols_[many], X_, G_)
+                    elif many.any():
                         _solve_free(Ql, Bl, F_, cols_[many], X_, G_, stats)
                     if not many.all():
                         free(F_, cols_[~many], X_, G_)
@@ -800,6 +926,7 @@ def solve_exact(
             "max_jitter": stats.max_jitter,
             "largest_block": stats.largest_block,
             "schur": bool(live.size and use_schur),
+            **({"chol_updates": stats.chol_updates} if use_schur else {}),
             **({"pcg_blocks": stats.pcg_blocks, "pcg_fallbacks": stats.pcg_fallbacks,
                 "cg_iterations": stats.cg_iterations, "pcg_tightened": stats.pcg_tightened,
                 "pcg_setups": stats.pcg_setups, "pcg_updates": stats.pcg_updates,
