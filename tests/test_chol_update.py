@@ -71,10 +71,13 @@ def test_far_sets_are_factorised_afresh(prob):
     upd = nnls._UpdatedFree(Q, B, stats)
     X, G = np.zeros(B.shape), np.zeros(B.shape)
     upd(F, [0], X, G)
+    X0 = X.copy()
     F = ~F  # nothing in common: an update would cost more than a factorisation
     upd(F, [0], X, G)
     assert stats.factorizations == 2 and stats.chol_updates == 0
-    assert _close(X[:, :1], _fresh(Q, B, F, [0])[0][:, :1])
+    ref = _fresh(Q, B, F, [0])[0][:, :1]
+    assert _close(X[:, :1], ref)
+    assert not _close(X0[:, :1], ref)  # broken: the previous set's solution
 
 
 def test_solve_with_updates_reaches_the_same_minimiser(prob, monkeypatch):
@@ -87,3 +90,28 @@ def test_solve_with_updates_reaches_the_same_minimiser(prob, monkeypatch):
     assert r.info["factorizations"] < ref.info["factorizations"]
     assert np.array_equal(r.x > 0, ref.x > 0) and _close(r.x, ref.x)
     assert np.allclose(r.objective, ref.objective, rtol=1e-12)
+    # broken: a loose pivoting tolerance stops short of the minimiser
+    loose = solve_exact(Q, B, schur=True, tol=1e-3)
+    assert not (np.array_equal(loose.x > 0, ref.x > 0) and _close(loose.x, ref.x))
+
+
+def test_an_indefinite_schur_complement_falls_back_to_a_fresh_factor(prob, monkeypatch):
+    Q, B = prob
+    n = Q.shape[0]
+    rng = np.random.default_rng(2)
+    F = rng.random((n, 1)) < 0.5
+    stats = nnls._Stats()
+    upd = nnls._UpdatedFree(Q, B, stats)
+    X, G = np.zeros(B.shape), np.zeros(B.shape)
+    upd(F, [0], X, G)
+    X0 = X.copy()
+    F[rng.choice(np.flatnonzero(F[:, 0]), 5, replace=False), 0] = False
+
+    def fail(*a, **k):
+        raise np.linalg.LinAlgError("not definite")
+
+    monkeypatch.setattr("scipy.linalg.cho_factor", fail)
+    upd(F, [0], X, G)
+    assert stats.factorizations == 2 and stats.chol_updates == 0
+    ref = _fresh(Q, B, F, [0])[0][:, :1]
+    assert _close(X[:, :1], ref) and not _close(X0[:, :1], ref)  # broken: the previous set's solution

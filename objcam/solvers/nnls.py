@@ -10,7 +10,9 @@ right-hand-side form of Kim & Park 2011, "Fast nonnegative matrix factorization:
   sets while their number keeps falling (with 3 retries allowed), otherwise only the one with the largest index
   (Murty's rule, which makes the method finite for positive definite Q);
 * columns with the same passive set share one Cholesky factorisation; the first step takes F = everything,
-  i.e. the unconstrained solution, which is one factorisation for all columns.
+  i.e. the unconstrained solution, which is one factorisation for all columns; on the Schur path
+  (:class:`_SchurFree`) a column with many zeros gets its block from the closest earlier factor of the same solve
+  when it differs by few variables (:class:`_UpdatedFree`).
 
 Numerics: each free-block solve gets one step of iterative refinement against the original block; a free
 block that is not numerically positive definite (Q singular or nearly so, e.g. duplicated columns of A without
@@ -223,10 +225,10 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats, fac: _Factor | None = None) 
 #: a free block F is solved from an earlier block's Cholesky factor over a set S (:class:`_UpdatedFree`) when the
 #: variables to add (F \\ S) and to hold at zero (S \\ F) number at most this share of |F| (else a fresh
 #: factorisation): an update costs ~|S|^2 of triangular solves per such variable, a factorisation |F|^3 / 3, so
-#: 1/3 is the flop break-even; on the 28 dumped 32 x 64 solves of two captures 0.05 / 0.1 / 0.25 measured
-#: 0.49 / 0.49 / 0.49 CPU s (forest) and 0.33 / 0.34 / 0.36 (courtyard), 0 (off) 0.61 and 0.35
-#: (bench/results.md, issue 26 session 19): 0.1, the least over both
-CHOL_UPDATE_SHARE = 0.1
+#: ~1/3 is the flop break-even; kept below it. Measured at 32 x 64 (two captures, load 5-7; bench/results.md,
+#: issue 26 session 19): 0.05-1 tie on the dumped solves; in the stage 0.25 took forest's solve from ~0.84 to
+#: ~0.63 CPU s, 0.1 to ~0.70, courtyard unchanged (~0.54) with either
+CHOL_UPDATE_SHARE = 0.25
 
 
 @dataclass
@@ -316,7 +318,14 @@ class _UpdatedFree:
                 E = np.zeros((base.S.size, zpos.size))
                 E[zpos, np.arange(zpos.size)] = 1.0
                 W = solve_triangular(U, E, trans="T", lower=False, check_finite=False)
-                Sz = cho_factor(W.T @ W, check_finite=False)
+                try:
+                    Sz = cho_factor(W.T @ W, check_finite=False)
+                except np.linalg.LinAlgError:  # (Q_SS^-1)_ZZ not numerically definite: this block afresh
+                    stats.chol_updates -= 1
+                    for c in group:
+                        del self.bases[c]
+                    _solve_free(Q, B, F, group, X, G, stats)
+                    continue
 
             def constrained(R: np.ndarray) -> np.ndarray:
                 """Q_FF^-1 R_F on S's order, 0 on Z (R (s, m))."""
