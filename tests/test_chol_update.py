@@ -1,4 +1,4 @@
-"""Free blocks solved from an earlier block's Cholesky factor (objcam.solvers.nnls._UpdatedFree): the same block
+"""Free blocks solved from an earlier block's Cholesky factor (objcam.solvers.blockchol.UpdatedFree): the same block
 solutions and the same exact minimiser as fresh factorisations, with fewer of them."""
 
 from __future__ import annotations
@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import objcam.solvers.blockchol as blockchol
 import objcam.solvers.nnls as nnls
 from objcam.solvers import solve_exact
 from tests.test_pcg_free import _problem
@@ -18,6 +19,11 @@ KKT_TOL = 1e-8
 def prob():
     D, Q, B, G, S, ls, lr = _problem(seed=5)
     return Q, B
+
+
+def _updated(Q, B, stats):
+    return blockchol.UpdatedFree(Q, B, stats, lambda F, g, X, G, fac=None: nnls._solve_free(Q, B, F, g, X, G, stats,
+                                                                                          fac=fac))
 
 
 def _fresh(Q, B, F, cols):
@@ -37,7 +43,7 @@ def test_updated_blocks_equal_fresh_factorisations(prob):
     F = np.zeros((n, 3), dtype=bool)
     F[:, 0] = rng.random(n) < 0.5  # the first round: column 0's block factorised afresh
     stats = nnls._Stats()
-    upd = nnls._UpdatedFree(Q, B, stats)
+    upd = _updated(Q, B, stats)
     X, G = np.zeros(B.shape), np.zeros(B.shape)
     upd(F, [0], X, G)
     assert stats.factorizations == 1 and stats.chol_updates == 0
@@ -68,7 +74,7 @@ def test_far_sets_are_factorised_afresh(prob):
     rng = np.random.default_rng(1)
     F = (rng.random((n, 1)) < 0.5)
     stats = nnls._Stats()
-    upd = nnls._UpdatedFree(Q, B, stats)
+    upd = _updated(Q, B, stats)
     X, G = np.zeros(B.shape), np.zeros(B.shape)
     upd(F, [0], X, G)
     X0 = X.copy()
@@ -83,7 +89,7 @@ def test_far_sets_are_factorised_afresh(prob):
 def test_solve_with_updates_reaches_the_same_minimiser(prob, monkeypatch):
     Q, B = prob
     r = solve_exact(Q, B, schur=True)
-    monkeypatch.setattr(nnls, "CHOL_UPDATE_SHARE", 0.0)  # main's path: a fresh factorisation per block
+    monkeypatch.setattr(blockchol, "CHOL_UPDATE_SHARE", 0.0)  # main's path: a fresh factorisation per block
     ref = solve_exact(Q, B, schur=True)
     assert r.converged and np.all(r.kkt_residual <= KKT_TOL) and np.all(ref.kkt_residual <= KKT_TOL)
     assert r.info["chol_updates"] > 0 and ref.info["chol_updates"] == 0
@@ -101,7 +107,7 @@ def test_an_indefinite_schur_complement_falls_back_to_a_fresh_factor(prob, monke
     rng = np.random.default_rng(2)
     F = rng.random((n, 1)) < 0.5
     stats = nnls._Stats()
-    upd = nnls._UpdatedFree(Q, B, stats)
+    upd = _updated(Q, B, stats)
     X, G = np.zeros(B.shape), np.zeros(B.shape)
     upd(F, [0], X, G)
     X0 = X.copy()

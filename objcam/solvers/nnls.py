@@ -12,7 +12,7 @@ right-hand-side form of Kim & Park 2011, "Fast nonnegative matrix factorization:
 * columns with the same passive set share one Cholesky factorisation; the first step takes F = everything,
   i.e. the unconstrained solution, which is one factorisation for all columns; on the Schur path
   (:class:`_SchurFree`) a column with many zeros gets its block from the closest earlier factor of the same solve
-  when it differs by few variables (:class:`_UpdatedFree`).
+  when it differs by few variables (:class:`objcam.solvers.blockchol.UpdatedFree`).
 
 Numerics: each free-block solve gets one step of iterative refinement against the original block; a free
 block that is not numerically positive definite (Q singular or nearly so, e.g. duplicated columns of A without
@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 from scipy.linalg import lapack
 
-from objcam.solvers import multilevel
+from objcam.solvers import blockchol, multilevel
+from objcam.solvers.blockchol import Factor as _Factor, free_block as _free_block, free_groups as _free_groups
 from objcam.threads import single_blas_thread
 
 
@@ -107,68 +108,6 @@ def kkt_residual(Q: np.ndarray, B: np.ndarray, X: np.ndarray, QX: np.ndarray | N
     return (nat.max(axis=0) if nat.shape[0] else np.zeros(B2.shape[1])) / scale
 
 
-class _Factor:
-    """Cholesky of a symmetric block with a jitter fallback and iterative refinement.
-
-    ``remake``: a function returning S again; given, S is factorised in place (its memory becomes the factor:
-    one |F| x |F| matrix per free block instead of two) and an attempt that fails takes a fresh S from it; the
-    refinement's residual then comes from :meth:`solve`'s ``residual``."""
-
-    def __init__(self, S: np.ndarray, jitter0: float = 1e-13, remake=None):
-        self.S = None if remake is not None else S
-        self.jitter = 0.0
-        # S is symmetric: hand LAPACK its transpose, a Fortran-ordered view of the same matrix (a plain copy
-        # inside the wrapper instead of a transposing one; none at all when it may overwrite S)
-        c, info = lapack.dpotrf(S.T if S.flags.c_contiguous else S, lower=0, clean=1,
-                                overwrite_a=int(remake is not None))
-        if info != 0:
-            S = remake() if remake is not None else S
-            dmax = float(np.max(np.abs(np.diag(S)))) if S.size else 1.0
-            dmax = dmax if dmax > 0 else 1.0
-            rel = jitter0
-            while info != 0:
-                self.jitter = rel * dmax
-                Sj = S.copy()
-                Sj[np.diag_indices_from(Sj)] += self.jitter
-                c, info = lapack.dpotrf(Sj, lower=0, clean=1, overwrite_a=1)
-                rel *= 100.0
-                if rel > 1e3:
-                    raise np.linalg.LinAlgError("free block is not positive semi-definite")
-        self.c = c
-
-    def _solve(self, R: np.ndarray) -> np.ndarray:
-        x, info = lapack.dpotrs(self.c, R, lower=0)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"dpotrs failed ({info})")
-        return x
-
-    def solve(self, R: np.ndarray, refine: int = 2, residual=None) -> np.ndarray:
-        """S^-1 R with ``refine`` steps of iterative refinement; ``residual(x)``: R - S x (required when S was
-        factorised in place)."""
-        x = self._solve(R)
-        for _ in range(refine):
-            x = x + self._solve(R - self.S @ x if residual is None else residual(x))
-        return x
-
-
-#: bytes of Q's rows gathered at a time into a free block (objcam.solvers.nnls._free_block)
-_BAND_BYTES = 64 * 2**20
-
-
-def _free_block(Q: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Q[idx][:, idx] (|F|, |F|), gathered a band of rows at a time: no |F| x N intermediate (0.7 GB per free
-    block at 128 x 256)."""
-    k = idx.size
-    S = np.empty((k, k))
-    step = max(1, _BAND_BYTES // (8 * max(Q.shape[0], 1)))
-    for r0 in range(0, k, step):
-        # mode="clip" (idx is in range): numpy buffers ``out`` under the default mode="raise", a second copy of
-        # the band; unbuffered, the gather took half the CPU at 64 x 128 (bench/results.md, issue 26 session 17)
-        band = Q.take(idx[r0 : r0 + step], axis=0, mode="clip")
-        np.take(band, idx, axis=1, out=S[r0 : r0 + step], mode="clip")
-    return S
-
-
 @dataclass
 class _Stats:
     factorizations: int = 0
@@ -180,15 +119,7 @@ class _Stats:
     pcg_tightened: int = 0  # columns re-solved to PCG_SLACK after a loose round showed nothing infeasible
     pcg_setups: int = 0  # fresh preconditioner set-ups (sparse LU + k solves)
     pcg_updates: int = 0  # preconditioners made from a base's factors by a bordered update (_Bordered)
-    chol_updates: int = 0  # free blocks solved from an earlier block's Cholesky factor (_UpdatedFree)
-
-
-def _free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
-    """The columns of ``cols`` grouped by identical free sets F[:, c] (F (N, m) bool), keyed by the packed set."""
-    keys: dict[bytes, list[int]] = {}
-    for c in cols:
-        keys.setdefault(np.packbits(F[:, c]).tobytes(), []).append(int(c))
-    return keys
+    chol_updates: int = 0  # free blocks solved from an earlier block's Cholesky factor (blockchol.UpdatedFree)
 
 
 def _solve_free(Q, B, F, cols, X, G, stats: _Stats, fac: _Factor | None = None) -> None:
@@ -220,132 +151,6 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats, fac: _Factor | None = None) 
         X[np.ix_(idx, group)] = xs
         full[idx] = xs
         G[:, group] = Q @ full - B[:, group]
-
-
-#: a free block F is solved from an earlier block's Cholesky factor over a set S (:class:`_UpdatedFree`) when the
-#: variables to add (F \\ S) and to hold at zero (S \\ F) number at most this share of |F| (else a fresh
-#: factorisation): an update costs ~|S|^2 of triangular solves per such variable, a factorisation |F|^3 / 3, so
-#: ~1/3 is the flop break-even; kept below it. Measured at 32 x 64 (two captures, load 5-7; bench/results.md,
-#: issue 26 session 19): 0.05-1 tie on the dumped solves; in the stage 0.25 took forest's solve from ~0.84 to
-#: ~0.63 CPU s, 0.1 to ~0.70, courtyard unchanged (~0.54) with either
-CHOL_UPDATE_SHARE = 0.25
-
-
-@dataclass
-class _CholBase:
-    """A Cholesky factor ``Q_SS = U^T U`` (U (s, s) upper, Fortran order) over the ordered variables S (s,)."""
-
-    S: np.ndarray
-    U: np.ndarray
-
-
-class _UpdatedFree:
-    """Per-block Cholesky solves that reuse the factors of earlier blocks of the same solve.
-
-    Between pivoting rounds a column's free set changes by a few variables, and the colour columns' free sets
-    differ by a few. A new free set F is solved from the stored factor over S closest to it (fewest variables
-    to add and to hold at zero): the added variables A are appended by a bordered factor
-    ``[[U, K], [0, chol(Q_AA - K^T K)]]`` with ``K = U^-T Q_SA``, and the variables Z = S \\ F held at zero by the
-    Schur complement over Z, as in :class:`_SchurFree` (``W = U^-T E_Z``, ``(Q^-1)_ZZ = W^T W``). The result is
-    F's exact block solution to rounding, refined once against Q like the fresh factorisation's. A set too far
-    from every stored factor (:data:`CHOL_UPDATE_SHARE`) gets a fresh factorisation, stored for later blocks.
-    Factors live for one ``solve_exact`` (a reweighted solve has a new Q: nothing carries over)."""
-
-    def __init__(self, Q: np.ndarray, B: np.ndarray, stats: _Stats):
-        self.Q, self.B, self.stats = Q, B, stats
-        self.bases: dict[int, _CholBase] = {}  # column -> the factor its last block was solved with
-
-    def _closest(self, inF: np.ndarray, nf: int) -> tuple[_CholBase | None, int]:
-        """The stored base with the fewest added + zeroed variables for the free set ``inF`` (N,) bool, and
-        that count."""
-        best, cost = None, nf + 1
-        for base in {id(b): b for b in self.bases.values()}.values():
-            inS = inF[base.S]
-            c = int(base.S.size - inS.sum()) + (nf - int(inS.sum()))  # |S \ F| + |F \ S|
-            if c < cost:
-                best, cost = base, c
-        return best, cost
-
-    def _border(self, base: _CholBase, add: np.ndarray) -> _CholBase | None:
-        """base extended by the variables ``add``; None when their Schur complement is not positive definite."""
-        from scipy.linalg import solve_triangular
-
-        s, a = base.S.size, add.size
-        K = solve_triangular(base.U, self.Q[np.ix_(base.S, add)], trans="T", lower=False, check_finite=False)
-        Saa = _free_block(self.Q, add) - K.T @ K
-        Uaa, info = lapack.dpotrf(Saa, lower=0, clean=1, overwrite_a=1)
-        if info != 0:
-            return None
-        U = np.zeros((s + a, s + a), order="F")
-        U[:s, :s] = base.U
-        U[:s, s:] = K
-        U[s:, s:] = Uaa
-        return _CholBase(np.concatenate([base.S, add]), U)
-
-    def __call__(self, F: np.ndarray, cols, X: np.ndarray, G: np.ndarray) -> None:
-        from scipy.linalg import cho_factor, cho_solve, solve_triangular
-
-        Q, B, stats = self.Q, self.B, self.stats
-        for group in _free_groups(F, cols).values():
-            inF = F[:, group[0]]
-            idx = np.flatnonzero(inF)
-            X[:, group] = 0.0
-            if idx.size == 0:
-                G[:, group] = -B[:, group]
-                continue
-            base, cost = self._closest(inF, idx.size)
-            if base is not None and 0 < cost <= CHOL_UPDATE_SHARE * idx.size:
-                add = idx[~np.isin(idx, base.S, assume_unique=True)]
-                base = self._border(base, add) if add.size else base
-            elif base is None or cost > 0:
-                base = None
-            if base is None:  # a fresh factorisation (with _Factor's jitter fallback when singular)
-                fac = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
-                stats.factorizations += 1
-                stats.max_jitter = max(stats.max_jitter, fac.jitter)
-                if fac.jitter > 0:  # a jittered factor is not Q's: solve with it alone, store nothing
-                    _solve_free(Q, B, F, group, X, G, stats, fac=fac)
-                    continue
-                base = _CholBase(idx, np.asfortranarray(fac.c))
-            else:
-                stats.chol_updates += 1
-            stats.largest_block = max(stats.largest_block, idx.size)
-            for c in group:
-                self.bases[c] = base
-            zpos = np.flatnonzero(~inF[base.S])
-            U = base.U
-            if zpos.size:
-                E = np.zeros((base.S.size, zpos.size))
-                E[zpos, np.arange(zpos.size)] = 1.0
-                W = solve_triangular(U, E, trans="T", lower=False, check_finite=False)
-                try:
-                    Sz = cho_factor(W.T @ W, check_finite=False)
-                except np.linalg.LinAlgError:  # (Q_SS^-1)_ZZ not numerically definite: this block afresh
-                    stats.chol_updates -= 1
-                    for c in group:
-                        del self.bases[c]
-                    _solve_free(Q, B, F, group, X, G, stats)
-                    continue
-
-            def constrained(R: np.ndarray) -> np.ndarray:
-                """Q_FF^-1 R_F on S's order, 0 on Z (R (s, m))."""
-                x, info = lapack.dpotrs(U, R, lower=0)
-                if zpos.size:
-                    mu = -cho_solve(Sz, x[zpos], check_finite=False)
-                    x = x + solve_triangular(U, W @ mu, lower=False, check_finite=False)
-                    x[zpos] = 0.0
-                return x
-
-            Bs = B[np.ix_(base.S, group)]
-            full = np.zeros((Q.shape[0], len(group)))
-            xs = constrained(Bs)
-            full[base.S] = xs
-            R = Bs - (Q @ full)[base.S]  # one step of iterative refinement against Q, as _Factor.solve
-            R[zpos] = 0.0
-            xs = xs + constrained(R)
-            full[base.S] = xs
-            X[:, group] = full
-            G[:, group] = Q @ full - B[:, group]
 
 
 class _SchurFree:
@@ -897,7 +702,9 @@ def solve_exact(
                     QX = None
             elif use_schur:
                 free = _SchurFree(Ql, Bl, stats)
-                blocks = _UpdatedFree(Ql, Bl, stats) if CHOL_UPDATE_SHARE > 0 else None
+                blocks = blockchol.UpdatedFree(
+                    Ql, Bl, stats, lambda F_, g, X_, G_, fac=None: _solve_free(Ql, Bl, F_, g, X_, G_, stats, fac=fac)
+                ) if blockchol.CHOL_UPDATE_SHARE > 0 else None
                 limit = live.size // 3
 
                 def guarded(F_, cols_, X_, G_):
