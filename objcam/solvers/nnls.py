@@ -36,8 +36,9 @@ from typing import Any
 import numpy as np
 from scipy.linalg import lapack
 
-from objcam.solvers import blockchol, multilevel
+from objcam.solvers import blockchol
 from objcam.solvers.blockchol import Factor as _Factor, free_block as _free_block, free_groups as _free_groups
+from objcam.solvers import multilevel
 from objcam.threads import single_blas_thread
 
 
