@@ -85,8 +85,8 @@ def free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
 #: variables to add (F \\ S) and to hold at zero (S \\ F) number at most this share of |F| (else a fresh
 #: factorisation): an update costs ~|S|^2 of triangular solves per such variable, a factorisation |F|^3 / 3, so
 #: ~1/3 is the flop break-even; kept below it. Measured at 32 x 64 (two captures, load 5-7; bench/results.md,
-#: issue 26 session 19): 0.05-1 tie on the dumped solves; in the stage 0.25 took forest's solve from ~0.84 to
-#: ~0.63 CPU s, 0.1 to ~0.70, courtyard unchanged (~0.54) with either
+#: issue 26 session 19): 0.05-1 tie on the dumped solves; in the stage 0.25 took forest's solve from a median
+#: 0.85 to 0.72 CPU s (0.1: 0.70), courtyard's unchanged (0.54; 0.1: 0.58)
 CHOL_UPDATE_SHARE = 0.25
 
 
