@@ -10,7 +10,9 @@ right-hand-side form of Kim & Park 2011, "Fast nonnegative matrix factorization:
   sets while their number keeps falling (with 3 retries allowed), otherwise only the one with the largest index
   (Murty's rule, which makes the method finite for positive definite Q);
 * columns with the same passive set share one Cholesky factorisation; the first step takes F = everything,
-  i.e. the unconstrained solution, which is one factorisation for all columns.
+  i.e. the unconstrained solution, which is one factorisation for all columns; on the Schur path
+  (:class:`_SchurFree`) a column with many zeros gets its block from the closest earlier factor of the same solve
+  when it differs by few variables (:class:`objcam.solvers.blockchol.UpdatedFree`).
 
 Numerics: each free-block solve gets one step of iterative refinement against the original block; a free
 block that is not numerically positive definite (Q singular or nearly so, e.g. duplicated columns of A without
@@ -34,6 +36,8 @@ from typing import Any
 import numpy as np
 from scipy.linalg import lapack
 
+from objcam.solvers import blockchol
+from objcam.solvers.blockchol import Factor as _Factor, free_block as _free_block, free_groups as _free_groups
 from objcam.solvers import multilevel
 from objcam.solvers.products import sym_dot
 from objcam.threads import single_blas_thread
@@ -106,68 +110,6 @@ def kkt_residual(Q: np.ndarray, B: np.ndarray, X: np.ndarray, QX: np.ndarray | N
     return (nat.max(axis=0) if nat.shape[0] else np.zeros(B2.shape[1])) / scale
 
 
-class _Factor:
-    """Cholesky of a symmetric block with a jitter fallback and iterative refinement.
-
-    ``remake``: a function returning S again; given, S is factorised in place (its memory becomes the factor:
-    one |F| x |F| matrix per free block instead of two) and an attempt that fails takes a fresh S from it; the
-    refinement's residual then comes from :meth:`solve`'s ``residual``."""
-
-    def __init__(self, S: np.ndarray, jitter0: float = 1e-13, remake=None):
-        self.S = None if remake is not None else S
-        self.jitter = 0.0
-        # S is symmetric: hand LAPACK its transpose, a Fortran-ordered view of the same matrix (a plain copy
-        # inside the wrapper instead of a transposing one; none at all when it may overwrite S)
-        c, info = lapack.dpotrf(S.T if S.flags.c_contiguous else S, lower=0, clean=1,
-                                overwrite_a=int(remake is not None))
-        if info != 0:
-            S = remake() if remake is not None else S
-            dmax = float(np.max(np.abs(np.diag(S)))) if S.size else 1.0
-            dmax = dmax if dmax > 0 else 1.0
-            rel = jitter0
-            while info != 0:
-                self.jitter = rel * dmax
-                Sj = S.copy()
-                Sj[np.diag_indices_from(Sj)] += self.jitter
-                c, info = lapack.dpotrf(Sj, lower=0, clean=1, overwrite_a=1)
-                rel *= 100.0
-                if rel > 1e3:
-                    raise np.linalg.LinAlgError("free block is not positive semi-definite")
-        self.c = c
-
-    def _solve(self, R: np.ndarray) -> np.ndarray:
-        x, info = lapack.dpotrs(self.c, R, lower=0)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"dpotrs failed ({info})")
-        return x
-
-    def solve(self, R: np.ndarray, refine: int = 2, residual=None) -> np.ndarray:
-        """S^-1 R with ``refine`` steps of iterative refinement; ``residual(x)``: R - S x (required when S was
-        factorised in place)."""
-        x = self._solve(R)
-        for _ in range(refine):
-            x = x + self._solve(R - self.S @ x if residual is None else residual(x))
-        return x
-
-
-#: bytes of Q's rows gathered at a time into a free block (objcam.solvers.nnls._free_block)
-_BAND_BYTES = 64 * 2**20
-
-
-def _free_block(Q: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Q[idx][:, idx] (|F|, |F|), gathered a band of rows at a time: no |F| x N intermediate (0.7 GB per free
-    block at 128 x 256)."""
-    k = idx.size
-    S = np.empty((k, k))
-    step = max(1, _BAND_BYTES // (8 * max(Q.shape[0], 1)))
-    for r0 in range(0, k, step):
-        # mode="clip" (idx is in range): numpy buffers ``out`` under the default mode="raise", a second copy of
-        # the band; unbuffered, the gather took half the CPU at 64 x 128 (bench/results.md, issue 26 session 17)
-        band = Q.take(idx[r0 : r0 + step], axis=0, mode="clip")
-        np.take(band, idx, axis=1, out=S[r0 : r0 + step], mode="clip")
-    return S
-
-
 @dataclass
 class _Stats:
     factorizations: int = 0
@@ -179,18 +121,12 @@ class _Stats:
     pcg_tightened: int = 0  # columns re-solved to PCG_SLACK after a loose round showed nothing infeasible
     pcg_setups: int = 0  # fresh preconditioner set-ups (sparse LU + k solves)
     pcg_updates: int = 0  # preconditioners made from a base's factors by a bordered update (_Bordered)
+    chol_updates: int = 0  # free blocks solved from an earlier block's Cholesky factor (blockchol.UpdatedFree)
 
 
-def _free_groups(F: np.ndarray, cols) -> dict[bytes, list[int]]:
-    """The columns of ``cols`` grouped by identical free sets F[:, c] (F (N, m) bool), keyed by the packed set."""
-    keys: dict[bytes, list[int]] = {}
-    for c in cols:
-        keys.setdefault(np.packbits(F[:, c]).tobytes(), []).append(int(c))
-    return keys
-
-
-def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
-    """For each column in ``cols``: x_F = Q_FF^{-1} b_F, x_G = 0, g = Q x - b. Groups identical F patterns."""
+def _solve_free(Q, B, F, cols, X, G, stats: _Stats, fac: _Factor | None = None) -> None:
+    """For each column in ``cols``: x_F = Q_FF^{-1} b_F, x_G = 0, g = Q x - b. Groups identical F patterns.
+    ``fac``: the factor of the (one) free block, already made and counted."""
     if len(cols) == 0:
         return
     for group in _free_groups(F, cols).values():
@@ -200,9 +136,11 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
             G[:, group] = -B[:, group]
             continue
         # the block factorised in place; the refinement's residual and the gradient from products with Q
-        fac = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
-        stats.factorizations += 1
-        stats.max_jitter = max(stats.max_jitter, fac.jitter)
+        f = fac
+        if f is None:
+            f = _Factor(_free_block(Q, idx), remake=lambda: _free_block(Q, idx))
+            stats.factorizations += 1
+            stats.max_jitter = max(stats.max_jitter, f.jitter)
         stats.largest_block = max(stats.largest_block, idx.size)
         Bf = B[np.ix_(idx, group)]
         full = np.zeros((Q.shape[0], len(group)))
@@ -211,7 +149,7 @@ def _solve_free(Q, B, F, cols, X, G, stats: _Stats) -> None:
             full[idx] = xs
             return Bf - (Q @ full)[idx]
 
-        xs = fac.solve(Bf, refine=1, residual=residual)
+        xs = f.solve(Bf, refine=1, residual=residual)
         X[np.ix_(idx, group)] = xs
         full[idx] = xs
         G[:, group] = Q @ full - B[:, group]
@@ -729,6 +667,9 @@ def solve_exact(
                     QX = None
             elif use_schur:
                 free = _SchurFree(Ql, Bl, stats)
+                blocks = blockchol.UpdatedFree(
+                    Ql, Bl, stats, lambda F_, g, X_, G_, fac=None: _solve_free(Ql, Bl, F_, g, X_, G_, stats, fac=fac)
+                ) if blockchol.CHOL_UPDATE_SHARE > 0 else None
                 limit = live.size // 3
 
                 def guarded(F_, cols_, X_, G_):
@@ -736,7 +677,9 @@ def solve_exact(
                     # complement over its zero set
                     cols_ = np.asarray(cols_)
                     many = (~F_[:, cols_]).sum(axis=0) > limit
-                    if many.any():
+                    if many.any() and blocks is not None:
+                        blocks(F_, cols_[many], X_, G_)
+                    elif many.any():
                         _solve_free(Ql, Bl, F_, cols_[many], X_, G_, stats)
                     if not many.all():
                         free(F_, cols_[~many], X_, G_)
@@ -764,6 +707,7 @@ def solve_exact(
             "max_jitter": stats.max_jitter,
             "largest_block": stats.largest_block,
             "schur": bool(live.size and use_schur),
+            **({"chol_updates": stats.chol_updates} if use_schur else {}),
             **({"pcg_blocks": stats.pcg_blocks, "pcg_fallbacks": stats.pcg_fallbacks,
                 "cg_iterations": stats.cg_iterations, "pcg_tightened": stats.pcg_tightened,
                 "pcg_setups": stats.pcg_setups, "pcg_updates": stats.pcg_updates,
