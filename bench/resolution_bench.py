@@ -119,11 +119,14 @@ def clean_renders(out: Path, hdris, spp: int) -> Path:
 
 
 def refusal(height: int, max_seconds: float) -> str | None:
-    """Why objcam.transport.budget refuses this capture's transport at ``height`` (None: it fits): 16,384 pooled
-    pixels, a support plane, grey albedo."""
+    """Why objcam.transport.budget refuses a one-HDRI capture's transport at ``height`` (None: it fits): 16,384
+    pooled pixels, a support plane, grey albedo, one target (the question is asked per HDRI; this bench solves
+    its four HDRIs on one A, which the transport stage would plan at four targets' solves)."""
+    from objcam.transport import budget
     from objcam.transport.resolution import affordable
 
-    _, refused = affordable([height], [128 * 128], True, 1, 1, max_seconds)
+    _, refused = affordable([height], lambda h: [budget.estimate(128 * 128, budget.kept_texels(h, True), 1)],
+                            max_seconds)
     return refused.get(height)
 
 

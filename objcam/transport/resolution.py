@@ -136,11 +136,11 @@ def walk(fits: dict[int, LevelFit], sigma_abs: float, z: float = Z) -> tuple[int
     return chosen, steps
 
 
-def affordable(heights, pixels_of: list[int], support_plane: bool, channels: int, supersample: int,
-               max_seconds: float, memory: int | None = None) -> tuple[list[int], dict[int, str]]:
+def affordable(heights, estimates, max_seconds: float, memory: int | None = None) -> tuple[list[int], dict[int, str]]:
     """(the candidate heights the budget allows, ascending; {refused height: why}): a height is refused when
-    objcam.transport.budget's estimate for any camera passes the machine's memory or its planned seconds (A, Gram,
-    exact solve, summed over cameras) pass ``max_seconds``. Heights above a refused one are refused too."""
+    any camera's estimate (``estimates(height)``: objcam.transport.budget.estimate per camera, as the transport
+    stage plans its build) passes the machine's memory or the build's planned seconds (A, Gram, the exact solves
+    and their verdicts; budget.plan) pass ``max_seconds``. Heights above a refused one are refused too."""
     from objcam.errors import StageError
     from objcam.transport import budget
 
@@ -149,16 +149,16 @@ def affordable(heights, pixels_of: list[int], support_plane: bool, channels: int
         if refused:
             refused[h] = f"above the refused {min(refused)}"
             continue
-        ests = [budget.estimate(px, budget.kept_texels(h * supersample, support_plane), channels) for px in pixels_of]
+        ests = estimates(h)
         try:
             for est in ests:
                 budget.check(est, None, memory)
         except StageError as e:
             refused[h] = str(e).split(" -- fix:")[0].strip()
             continue
-        secs = sum(e["seconds"] for e in ests)
+        secs = budget.plan(ests)["seconds"]
         if secs > max_seconds:
-            refused[h] = (f"planned {secs:,.0f} s (A, Gram and exact solve; objcam.transport.budget) > "
+            refused[h] = (f"planned {secs:,.0f} s (A, Gram, exact solves and verdicts; objcam.transport.budget) > "
                           f"transport.env_height_max_seconds {max_seconds:g}")
             continue
         ok.append(h)
@@ -181,10 +181,7 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
     from objcam.transport.storage import load_group
 
     c0 = time.process_time()
-    pixels = [e["pixels"] for e in estimates(min(params.env_height_candidates))]
-    desc = art.description
-    heights, refused = affordable(params.env_height_candidates, pixels, desc.support_is_plane,
-                                  1 if desc.albedo_is_grey() else 3, 1, params.env_height_max_seconds)
+    heights, refused = affordable(params.env_height_candidates, estimates, params.env_height_max_seconds)
     if not heights:
         why = "; ".join(f"{h}: {r}" for h, r in refused.items())
         raise StageError(f"transport.env_height=auto: no candidate height fits ({why})",
