@@ -181,7 +181,8 @@ def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None) -
 def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
     """The rule of ``transport.env_height=auto`` (objcam.transport.resolution.choose_height's per-target part:
     target_fit and walk, with the stage's noise) run on the fixed-height runs' transports, which are the A's the
-    stage would build (same settings and seed). Returns a record shaped like the stage's."""
+    stage would build (same settings and seed); a target's finer heights are not fitted once its walk has stopped
+    (the stage's rule does not build them either). Returns a record shaped like the stage's."""
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.transport import load_transport
     from objcam.transport.resolution import Z, pooled_target, target_fit, walk
@@ -197,6 +198,9 @@ def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
             tr = load_transport(work / "transport", h)
             img, ok, rel, sigma_abs = pooled_target(t, art.folder, tr)
             fits[height] = target_fit(tr, img, ok, rel)
+            del tr
+            if walk(fits, sigma_abs)[0] < height:  # the walk stopped below: finer fits cannot change the choice
+                break
         chosen, steps = walk(fits, sigma_abs)
         out[h] = {"height": chosen, "noise_rel": rel, "steps": steps}
     return {"record": {"height": max(v["height"] for v in out.values()), "targets": out, "z": Z, "refused": {},
