@@ -69,9 +69,11 @@ def chi2_per_value(y: np.ndarray, fit: np.ndarray, sigma_rel: float) -> tuple[fl
 
 #: Texels above which the verdict's Q is factorised in float32 on every core (objcam.analysis.inverse_diagonal):
 #: float64 on one BLAS thread took 73 s of a 153 s solve stage at 128 x 256 (16,640 texels, quiet machine) and
-#: 4 N x N float64 copies (8.9 GB). Float32 against float64 measured at 64 x 128 and 128 x 256: bench/results.md,
-#: issue 26, session 19. At or below it (32 x 64: 1,088 texels) float64 on one thread, as before.
-UNCERTAINTY_FLOAT64_MAX = 2048
+#: 4 N x N float64 copies (8.9 GB). Float32 against float64 (bench/results.md, issue 26, session 19): at 128 x 256
+#: (forest, 2.3% noise) 2.2e-5 relative at most; at 64 x 128 on the resolution bench's captures 1.3-2.0e-5 at 2%
+#: noise but up to 8.2e-4 at 0.1% (a weaker prior, a worse-conditioned Q), no decision changed in any of them.
+#: 64 x 128 (4,224 texels, ~2 s in float64) stays in float64; float32 from 128 x 256 on.
+UNCERTAINTY_FLOAT64_MAX = 8192
 _BAND_BYTES = 64 << 20  # float64 rows of the Gram read (and corrected) at a time
 
 
