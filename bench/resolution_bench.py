@@ -2,6 +2,7 @@
 
     python -m bench.resolution_bench [--write] [--out bench/out/resolution] [--hdris forest,courtyard,city,sunrise]
                                      [--noise 0.001,0.02] [--heights 32,64,128] [--spp 4096]
+                                     [--paper-heights 32,64] [--reuse]
 
 The core bench's scene (bench/run.py: the bunny on a grey plane, one 128 x 128 camera, grey known albedo), its
 targets rendered by Mitsuba (objcam.synth's split estimator: stratified direct light plus path-traced indirect
@@ -142,13 +143,13 @@ def score32(est: np.ndarray, truth_full: np.ndarray, mask32: np.ndarray) -> dict
     return {k: m[k] for k in KEYS} | {"baselines": {b: {k: v[k] for k in KEYS} for b, v in m["baselines"].items()}}
 
 
-def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None) -> list[dict]:
+def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None, methods=METHODS) -> list[dict]:
     """objcam at one height with each solve method; one row per (method, HDRI)."""
     from objcam.envmap import read_latlong, read_latlong_mask
     from objcam.pipeline.engine import Pipeline
 
     rows = []
-    for method, sparams in METHODS:
+    for method, sparams in methods:
         pipe = Pipeline(cap, work, overrides={"transport": {"env_height": height}, "solve": sparams}, quiet=True)
         t0 = time.perf_counter()
         pipe.run(until="evaluate")
@@ -295,6 +296,7 @@ def main(argv=None) -> int:
     ap.add_argument("--auto", choices=("fixed", "stage", "none"), default="fixed",
                     help="env_height=auto's choice: 'fixed' runs its rule on the fixed-height runs' A (the same A "
                          "the stage builds), 'stage' runs the transport stage with env_height=auto (A built again)")
+    ap.add_argument("--paper-heights", default=None, help="heights the damped solver also runs at (default: all)")
     ap.add_argument("--reuse", action="store_true", help="take a noise level's rows from OUT/rows-NOISE.json when "
                     "there (two levels run as two processes, then merged)")
     args = ap.parse_args(argv)
@@ -303,6 +305,7 @@ def main(argv=None) -> int:
     hdris = [h for h in args.hdris.split(",") if h]
     noises = [float(v) for v in args.noise.split(",") if v]
     heights = sorted(int(v) for v in args.heights.split(",") if v)
+    paper_at = heights if args.paper_heights is None else [int(v) for v in args.paper_heights.split(",") if v]
     args.out.mkdir(parents=True, exist_ok=True)
     renders = None if args.reuse and all((args.out / f"rows-{n:g}.json").is_file() for n in noises) else \
         clean_renders(args.out, hdris, args.spp)
@@ -323,10 +326,15 @@ def main(argv=None) -> int:
         for height in [h for h in heights if h not in refused]:
             log(f"  noise {noise:g}, {height} x {2 * height}")
             work = args.out / "work" / f"n{noise:g}-h{height}"
-            for r in run_height(cap, work, height, hdris, mask32):
+            methods = METHODS if height in paper_at else METHODS[:1]
+            for r in run_height(cap, work, height, hdris, mask32, methods):
                 rows.append(r | {"noise": noise})
             if mask32 is None:
                 mask32 = {h: read_latlong_mask(work / "solve" / h / "envmap_mask.png") for h in hdris}
+            # written after every height: a run stopped later still leaves its finished heights for --reuse
+            (args.out / f"rows-{noise:g}.json").write_text(json.dumps(
+                {"rows": [r for r in rows if r["noise"] == noise], "auto": None, "partial": True},
+                indent=1, default=float))
         if args.auto == "stage":
             log(f"  noise {noise:g}: env_height=auto")
             autos[noise] = run_auto(cap, args.out / "work" / f"n{noise:g}-auto")
