@@ -7,7 +7,8 @@ Per colour channel, with ``A`` (M, N) pixels x kept texels and ``lr`` the *absol
 - :mod:`.leverage`: :func:`ridge_cholesky` (factor ``A^T A + lr I`` once and share it), :func:`leverage` (M,),
   :func:`cooks_distance` (M,) or (M, C);
 - :mod:`.uncertainty`: :func:`texel_uncertainty` (N,), :func:`inverse_diagonal` (N,), :func:`gain_images` (k, M),
-  :func:`regularizer`, :func:`to_grid` / :func:`scatter_to_image` / :func:`texel_columns` (back to envmap / image layout);
+  :func:`regularizer`, :func:`to_grid` / :func:`scatter_to_image` / :func:`texel_columns` (back to envmap /
+  image layout);
 - :mod:`.spectrum`: :func:`singular_spectrum` (min(M, N),), :func:`effective_rank`,
   :func:`entropy_effective_rank`, :func:`ridge_dof`;
 - :mod:`.plots`: PNGs for a report (:func:`plot_spectrum`, :func:`plot_envmap_map`, :func:`plot_image_map`,
