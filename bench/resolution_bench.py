@@ -2,6 +2,7 @@
 
     python -m bench.resolution_bench [--write] [--out bench/out/resolution] [--hdris forest,courtyard,city,sunrise]
                                      [--noise 0.001,0.02] [--heights 32,64,128] [--spp 4096]
+                                     [--paper-heights 32,64] [--reuse]
 
 The core bench's scene (bench/run.py: the bunny on a grey plane, one 128 x 128 camera, grey known albedo), its
 targets rendered by Mitsuba (objcam.synth's split estimator: stratified direct light plus path-traced indirect
@@ -119,11 +120,14 @@ def clean_renders(out: Path, hdris, spp: int) -> Path:
 
 
 def refusal(height: int, max_seconds: float) -> str | None:
-    """Why objcam.transport.budget refuses this capture's transport at ``height`` (None: it fits): 16,384 pooled
-    pixels, a support plane, grey albedo."""
+    """Why objcam.transport.budget refuses a one-HDRI capture's transport at ``height`` (None: it fits): 16,384
+    pooled pixels, a support plane, grey albedo, one target (the question is asked per HDRI; this bench solves
+    its four HDRIs on one A, which the transport stage would plan at four targets' solves)."""
+    from objcam.transport import budget
     from objcam.transport.resolution import affordable
 
-    _, refused = affordable([height], [128 * 128], True, 1, 1, max_seconds)
+    _, refused = affordable([height], lambda h: [budget.estimate(128 * 128, budget.kept_texels(h, True), 1)],
+                            max_seconds)
     return refused.get(height)
 
 
@@ -139,13 +143,13 @@ def score32(est: np.ndarray, truth_full: np.ndarray, mask32: np.ndarray) -> dict
     return {k: m[k] for k in KEYS} | {"baselines": {b: {k: v[k] for k in KEYS} for b, v in m["baselines"].items()}}
 
 
-def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None) -> list[dict]:
+def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None, methods=METHODS) -> list[dict]:
     """objcam at one height with each solve method; one row per (method, HDRI)."""
     from objcam.envmap import read_latlong, read_latlong_mask
     from objcam.pipeline.engine import Pipeline
 
     rows = []
-    for method, sparams in METHODS:
+    for method, sparams in methods:
         pipe = Pipeline(cap, work, overrides={"transport": {"env_height": height}, "solve": sparams}, quiet=True)
         t0 = time.perf_counter()
         pipe.run(until="evaluate")
@@ -178,7 +182,8 @@ def run_height(cap: Path, work: Path, height: int, hdris, mask32: dict | None) -
 def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
     """The rule of ``transport.env_height=auto`` (objcam.transport.resolution.choose_height's per-target part:
     target_fit and walk, with the stage's noise) run on the fixed-height runs' transports, which are the A's the
-    stage would build (same settings and seed). Returns a record shaped like the stage's."""
+    stage would build (same settings and seed); a target's finer heights are not fitted once its walk has stopped
+    (the stage's rule does not build them either). Returns a record shaped like the stage's."""
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.transport import load_transport
     from objcam.transport.resolution import Z, pooled_target, target_fit, walk
@@ -194,6 +199,9 @@ def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
             tr = load_transport(work / "transport", h)
             img, ok, rel, sigma_abs = pooled_target(t, art.folder, tr)
             fits[height] = target_fit(tr, img, ok, rel)
+            del tr
+            if walk(fits, sigma_abs)[0] < height:  # the walk stopped below: finer fits cannot change the choice
+                break
         chosen, steps = walk(fits, sigma_abs)
         out[h] = {"height": chosen, "noise_rel": rel, "steps": steps}
     return {"record": {"height": max(v["height"] for v in out.values()), "targets": out, "z": Z, "refused": {},
@@ -288,6 +296,7 @@ def main(argv=None) -> int:
     ap.add_argument("--auto", choices=("fixed", "stage", "none"), default="fixed",
                     help="env_height=auto's choice: 'fixed' runs its rule on the fixed-height runs' A (the same A "
                          "the stage builds), 'stage' runs the transport stage with env_height=auto (A built again)")
+    ap.add_argument("--paper-heights", default=None, help="heights the damped solver also runs at (default: all)")
     ap.add_argument("--reuse", action="store_true", help="take a noise level's rows from OUT/rows-NOISE.json when "
                     "there (two levels run as two processes, then merged)")
     args = ap.parse_args(argv)
@@ -296,6 +305,7 @@ def main(argv=None) -> int:
     hdris = [h for h in args.hdris.split(",") if h]
     noises = [float(v) for v in args.noise.split(",") if v]
     heights = sorted(int(v) for v in args.heights.split(",") if v)
+    paper_at = heights if args.paper_heights is None else [int(v) for v in args.paper_heights.split(",") if v]
     args.out.mkdir(parents=True, exist_ok=True)
     renders = None if args.reuse and all((args.out / f"rows-{n:g}.json").is_file() for n in noises) else \
         clean_renders(args.out, hdris, args.spp)
@@ -316,10 +326,15 @@ def main(argv=None) -> int:
         for height in [h for h in heights if h not in refused]:
             log(f"  noise {noise:g}, {height} x {2 * height}")
             work = args.out / "work" / f"n{noise:g}-h{height}"
-            for r in run_height(cap, work, height, hdris, mask32):
+            methods = METHODS if height in paper_at else METHODS[:1]
+            for r in run_height(cap, work, height, hdris, mask32, methods):
                 rows.append(r | {"noise": noise})
             if mask32 is None:
                 mask32 = {h: read_latlong_mask(work / "solve" / h / "envmap_mask.png") for h in hdris}
+            # written after every height: a run stopped later still leaves its finished heights for --reuse
+            (args.out / f"rows-{noise:g}.json").write_text(json.dumps(
+                {"rows": [r for r in rows if r["noise"] == noise], "auto": None, "partial": True},
+                indent=1, default=float))
         if args.auto == "stage":
             log(f"  noise {noise:g}: env_height=auto")
             autos[noise] = run_auto(cap, args.out / "work" / f"n{noise:g}-auto")

@@ -94,3 +94,32 @@ def test_camera_looking_past_the_object_is_red(tmp_path, capsys):
     assert stage["metrics"]["verdict"] == "red"
     assert "WARNING: t0 graded red" in out
     assert "envmap.exr verdict red: " in out  # the end-of-run lines name each envmap with its grade
+
+
+def test_texel_uncertainty_is_exact_where_it_decides(toy):
+    """The verdict's spread (objcam.solvers.plan.verdict.texel_uncertainty) against sigma sqrt(diag(Q^-1)) from a
+    dense float64 inverse: texels whose lower bound sigma / sqrt(Q_jj) already exceeds the compared value keep the
+    bound (their comparison is exact), the rest are computed from the trailing block of the factor, in float64
+    and in float32 (the 128 x 256 path). Broken: the trailing block of the factor of Q in its stored order (the
+    wanted texels not moved last) is the inverse of another Schur complement and misses the exact values."""
+    from objcam.analysis import inverse_diagonal
+    from objcam.solvers import absolute_weights, difference_operator, regularized_gram
+    from objcam.solvers.plan.defaults import LS_NOISE_FACTOR
+    from objcam.solvers.plan.verdict import data_gram, texel_uncertainty
+
+    tr, truth, _, _ = toy
+    grams, D, sigma = tr.gram(), difference_operator(tr.grid, tr.texel_index), 0.37
+    G = data_gram(grams, [], np.float64)
+    Q = regularized_gram(G, D, *absolute_weights(G, LS_NOISE_FACTOR * NOISE**2, 1e-4))
+    exact = sigma * np.sqrt(np.diag(np.linalg.inv(Q)))
+    above = tr.x_from_envmap(truth).mean(axis=1)  # the verdict's first test: spread above the value
+    need = ~(sigma / np.sqrt(np.diag(Q)) > above)
+    assert 0 < need.sum() < need.size  # both kinds present on this sky
+    for dtype, rtol in ((np.float64, 1e-9), (np.float32, 1e-4)):
+        s, how = texel_uncertainty(grams, [], D, NOISE, sigma, 1e-4, above=above, dtype=dtype)
+        assert how == {"precision": np.dtype(dtype).name, "exact_texels": int(need.sum())}
+        np.testing.assert_allclose(s[need], exact[need], rtol=rtol)
+        assert np.all(s[~need] <= exact[~need] * (1 + 1e-12)) and np.all(s[~need] > above[~need])
+        assert np.array_equal(s > above, exact > above)  # every decision the exact spread's
+    broken = sigma * np.sqrt(inverse_diagonal(Q, last=int(need.sum())))
+    assert not np.allclose(broken, exact[need], rtol=1e-4)

@@ -6,14 +6,16 @@ Per colour channel, with ``A`` (M, N) pixels x kept texels and ``lr`` the *absol
 
 - :mod:`.leverage`: :func:`ridge_cholesky` (factor ``A^T A + lr I`` once and share it), :func:`leverage` (M,),
   :func:`cooks_distance` (M,) or (M, C);
-- :mod:`.uncertainty`: :func:`texel_uncertainty` (N,), :func:`gain_images` (k, M), :func:`regularizer`,
-  :func:`to_grid` / :func:`scatter_to_image` / :func:`texel_columns` (back to envmap / image layout);
+- :mod:`.uncertainty`: :func:`texel_uncertainty` (N,), :func:`inverse_diagonal` (N,), :func:`gain_images` (k, M),
+  :func:`regularizer`, :func:`to_grid` / :func:`scatter_to_image` / :func:`texel_columns` (back to envmap /
+  image layout);
 - :mod:`.spectrum`: :func:`singular_spectrum` (min(M, N),), :func:`effective_rank`,
   :func:`entropy_effective_rank`, :func:`ridge_dof`;
 - :mod:`.plots`: PNGs for a report (:func:`plot_spectrum`, :func:`plot_envmap_map`, :func:`plot_image_map`,
   :func:`plot_image_grid`).
 
-All dense linear algebra runs under :func:`objcam.threads.single_blas_thread`.
+All dense linear algebra runs under :func:`objcam.threads.single_blas_thread` (:func:`inverse_diagonal`: as many
+BLAS threads as it is given).
 """
 
 from objcam.analysis.leverage import (
@@ -35,6 +37,7 @@ from objcam.analysis.spectrum import (
 )
 from objcam.analysis.uncertainty import (
     gain_images,
+    inverse_diagonal,
     regularizer,
     scatter_to_image,
     texel_columns,
@@ -51,6 +54,7 @@ __all__ = [
     "effective_rank",
     "entropy_effective_rank",
     "gain_images",
+    "inverse_diagonal",
     "leverage",
     "plot_envmap_map",
     "plot_image_grid",

@@ -164,14 +164,15 @@ def _estimates(params: Params, art, groups: list[list], height: int) -> list[dic
         cam, f = cam_targets[0].camera, downsample_for(cam_targets[0].camera, params)
         out.append(budget.estimate((cam.height // f) * (cam.width // f),
                                    budget.kept_texels(height * params.supersample, desc.support_is_plane),
-                                   1 if desc.albedo_is_grey() else 3))
+                                   1 if desc.albedo_is_grey() else 3, targets=len(cam_targets)))
     return out
 
 
 def _planned(ests: list[dict]) -> dict:
-    """The build's plan from its cameras' estimates: the largest peak (cameras are built one after another) and
-    the summed time."""
-    return {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
+    """The build's plan from its cameras' estimates (objcam.transport.budget.plan)."""
+    from objcam.transport import budget
+
+    return budget.plan(ests)
 
 
 def _check_budget(inputs: StageInputs, params: Params, art, groups: list[list], height: int) -> None:

@@ -15,8 +15,10 @@ What is counted, per camera (``channels`` 1 for a grey albedo, else 3; N the tex
 
 N: with a support plane A keeps the texels above its horizon and the row below it (the sky a pixel near the
 plane's edge sees past it): ``(H/2 + 1) x 2H`` (measured: 1,088 at 32 x 64, 4,224 at 64 x 128 on the demo); without
-one every texel. Time: the columns of A, the Gram product and the edge solve's factorisations, each from a rate
-measured on this project's 2-core machine (constants below).
+one every texel. Time: the columns of A, the Gram product, and per target the edge solve (~N^2 on
+its PCG path) and its verdict's factorisation (N^3), each from a rate measured on this project's 2-core machine
+(constants below). :func:`plan` sums a build's cameras; the transport stage and ``transport.env_height=auto``
+(objcam.transport.resolution.affordable) plan with the same estimates.
 """
 
 from __future__ import annotations
@@ -34,9 +36,17 @@ MEMORY_SHARE = 0.8  # of the machine's physical memory one build may plan to use
 # per channel. Checked against the peak at 128 x 256 (bench/results.md "128 x 256: the memory cut"): the estimate
 # 13.4 GiB with A and the Gram file, the measured peak 12.1 GiB RSS (10.0 GiB anonymous; the solve unfinished).
 SOLVE_COPIES = 5
-# The default edge solve's seconds per texel^3 (CPU; 2 x 7 exact solves of ~15 free-block factorisations each):
-# measured 23-26 s at 4,224 texels and ~1.05 s at 1,088 on the demo capture, loaded 2-core machine.
-SOLVE_SECONDS_PER_TEXEL3 = 3.3e-10
+# The default edge solve's CPU seconds per target per texel^2 (the PCG free-block path of objcam.solvers.nnls,
+# session 18; solve.json's solve_cpu_seconds): 140 s at 16,640 texels (128 x 256, the forest synth capture, 12,744
+# unknowns after merging, quiet machine, 2026-12-04), 7.5-11.0 s at 4,224 (64 x 128, forest and courtyard
+# captures, load 4-10), 0.4-0.9 s at 1,088 (32 x 64, the resolution bench's four HDRIs; the Cholesky path below
+# 1,024 unknowns). Between each pair the time grows as ~N^1.95, not the Cholesky path's N^3 (3.3e-10 N^3 planned
+# 1,520 s at 128 x 256): 5.1e-7 N^2 gives 140 / 9.1 / 0.60 s.
+SOLVE_SECONDS_PER_TEXEL2 = 5.1e-7
+# The verdict's texel uncertainty (objcam.solvers.plan.verdict): one float32 Cholesky of the N x N Q (N^3 / 3
+# flops, ~80 GFlop/s on one core) and the inverse of the block the texels' lower bounds leave undecided: measured
+# 21-35 s on one core at 16,640 texels (bench/results.md, issue 26, session 19), planned at its full N^3 / 3 x 2.
+VERDICT_SECONDS_PER_TEXEL3 = 8.5e-12
 
 
 def machine_memory() -> int:
@@ -53,19 +63,28 @@ def kept_texels(env_height: int, support_plane: bool) -> int:
     return min(h, h // 2 + 1) * w if support_plane else h * w
 
 
-def estimate(pixels: int, texels: int, channels: int = 3) -> dict:
-    """Peak bytes and seconds of one camera's A, Gram matrices and known-albedo solve (module docstring).
-    Returns {"bytes", "seconds", "pixels", "texels", "channels", "parts": {name: bytes or seconds}}."""
+def estimate(pixels: int, texels: int, channels: int = 3, targets: int = 1) -> dict:
+    """Peak bytes and seconds of one camera's A, Gram matrices and known-albedo solves of its ``targets`` (module
+    docstring). Returns {"bytes", "seconds", "pixels", "texels", "channels", "targets", "parts": {name: bytes or
+    seconds}}."""
     a_bytes = 4 * pixels * texels * channels
     gram_bytes = 8 * channels * texels * texels
     solve_bytes = SOLVE_COPIES * gram_bytes
     a_s = SECONDS_PER_PAIR * pixels * texels
     gram_s = pixels * texels * texels * channels / GRAM_FLOPS
-    solve_s = SOLVE_SECONDS_PER_TEXEL3 * float(texels) ** 3  # three colour columns with any channel count
+    n = float(texels)
+    # per target, three colour columns with any channel count; the targets are solved one after another
+    solve_s = targets * (SOLVE_SECONDS_PER_TEXEL2 * n**2 + VERDICT_SECONDS_PER_TEXEL3 * n**3)
     return {"bytes": a_bytes + gram_bytes + solve_bytes, "seconds": a_s + gram_s + solve_s, "pixels": pixels,
-            "texels": texels, "channels": channels,
+            "texels": texels, "channels": channels, "targets": targets,
             "parts": {"a_bytes": a_bytes, "gram_bytes": gram_bytes, "solve_bytes": solve_bytes,
                       "a_seconds": a_s, "gram_seconds": gram_s, "solve_seconds": solve_s}}
+
+
+def plan(ests: list[dict]) -> dict:
+    """A build's plan from its cameras' estimates: {"bytes": the largest peak (cameras are built one after
+    another), "seconds": the summed time}."""
+    return {"bytes": max(e["bytes"] for e in ests), "seconds": sum(e["seconds"] for e in ests)}
 
 
 def check(est: dict, toml, memory: int | None = None) -> None:

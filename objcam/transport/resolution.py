@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 
 Z = 3.0  # one-sided significance of the test, in standard deviations of the null gain (module docstring)
 
@@ -43,11 +44,43 @@ class LevelFit:
     values: int  # fitted pixel values (pixels x 3)
 
 
-def _hat_traces(L: np.ndarray, G: np.ndarray) -> tuple[float, float]:
-    """(tr(H), tr(H^2)) of the hat matrix H = A Q^-1 A^T from Q's Cholesky factor L (lower) and G = A^T A (N, N):
-    tr(H) = tr(Q^-1 G), tr(H^2) = tr((Q^-1 G)^2)."""
-    M = sla.cho_solve((L, True), G, check_finite=False)
-    return float(np.trace(M)), float(np.sum(M * M.T))
+def _factor(Q: np.ndarray) -> np.ndarray:
+    """Q's lower Cholesky factor, in place: Q (N, N) symmetric, C-ordered; returns the factor as a Fortran-ordered
+    view of Q's memory (a symmetric C-ordered array is its own transpose in Fortran order)."""
+    from scipy.linalg import lapack
+
+    L, info = lapack.dpotrf(Q.T, lower=1, overwrite_a=1, clean=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"the quadratic prior's Q is not positive definite (potrf info={info})")
+    return L
+
+
+def _hat_traces(L: np.ndarray, R) -> tuple[float, float]:
+    """(tr(H), tr(H^2)) of the hat matrix H = A Q^-1 A^T, Q = G + R = L L^T (L: (N, N) float64 lower factor from
+    :func:`_factor`, **overwritten** by Q^-1), R = ls D^T D + lr I sparse. Q^-1 G = I - X with X = Q^-1 R, so
+    tr(H) = N - tr(X) and tr(H^2) = N - 2 tr(X) + tr(X^2): from Q^-1 (LAPACK potri, 2 N^3 / 3 flops) and products
+    with the sparse R (a few N^2), in place. Forming Q^-1 G by N pairs of triangular solves took 2 N^3 flops and a
+    second and third N x N array (128 x 256: 2.2 GB each)."""
+    from scipy.linalg import lapack
+
+    from objcam.solvers.regularization import _mirror_lower
+
+    n = L.shape[0]
+    S, info = lapack.dpotri(L, lower=1, overwrite_c=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"potri failed (info={info})")
+    step = max(1, (64 << 20) // (8 * n))  # rows per band (64 MB)
+    _mirror_lower(S, step)  # Q^-1 whole (potri fills the lower triangle)
+    R = sp.csr_matrix(R)
+    Rc = R.tocoo()
+    tr_x = float(np.dot(Rc.data, S[Rc.row, Rc.col]))  # tr(Q^-1 R) = sum_ij (Q^-1)_ij R_ji, both symmetric
+    tr_x2 = 0.0
+    for r0 in range(0, n, step):  # tr(X^2) = sum_ij X_ij (X^T)_ij, X^T = R Q^-1: a band of rows at a time
+        band = np.ascontiguousarray(S[r0 : r0 + step])
+        x = (R @ band.T).T  # X[band, :] = Q^-1[band, :] R = (R Q^-1[:, band])^T
+        xt = R[r0 : r0 + step] @ S  # (X^T)[band, :] = R[band, :] Q^-1
+        tr_x2 += float(np.sum(x * xt))
+    return n - tr_x, n - 2.0 * tr_x + tr_x2
 
 
 def fit_level(A: np.ndarray, G: np.ndarray, D, y: np.ndarray, sigma_rel: float, height: int,
@@ -69,10 +102,11 @@ def fit_level(A: np.ndarray, G: np.ndarray, D, y: np.ndarray, sigma_rel: float, 
         cols = slice(None) if A.shape[0] == 1 else slice(c, c + 1)
         yc = np.asarray(y[:, cols], np.float64)
         ls, lr = absolute_weights(G[c], ls_rel, lr_rel)
-        L = sla.cholesky(regularized_gram(G[c], D, ls, lr), lower=True, check_finite=False)
+        L = _factor(regularized_gram(G[c], D, ls, lr))  # one N x N array: Q, its factor, then Q^-1
         x = sla.cho_solve((L, True), A[c].T.astype(np.float64) @ yc, check_finite=False)
         rss += float(np.sum((yc - A[c].astype(np.float64) @ x) ** 2))
-        t1, t2 = _hat_traces(L, np.asarray(G[c], np.float64))
+        R = lr * sp.identity(L.shape[0], format="csr") + (ls * (D.T @ D) if D is not None and ls > 0 else 0)
+        t1, t2 = _hat_traces(L, R)
         k = yc.shape[1]  # colour columns sharing this A
         nu += k * (2 * t1 - t2)
         dof += k * t1
@@ -136,11 +170,11 @@ def walk(fits: dict[int, LevelFit], sigma_abs: float, z: float = Z) -> tuple[int
     return chosen, steps
 
 
-def affordable(heights, pixels_of: list[int], support_plane: bool, channels: int, supersample: int,
-               max_seconds: float, memory: int | None = None) -> tuple[list[int], dict[int, str]]:
+def affordable(heights, estimates, max_seconds: float, memory: int | None = None) -> tuple[list[int], dict[int, str]]:
     """(the candidate heights the budget allows, ascending; {refused height: why}): a height is refused when
-    objcam.transport.budget's estimate for any camera passes the machine's memory or its planned seconds (A, Gram,
-    exact solve, summed over cameras) pass ``max_seconds``. Heights above a refused one are refused too."""
+    any camera's estimate (``estimates(height)``: objcam.transport.budget.estimate per camera, as the transport
+    stage plans its build) passes the machine's memory or the build's planned seconds (A, Gram, the exact solves
+    and their verdicts; budget.plan) pass ``max_seconds``. Heights above a refused one are refused too."""
     from objcam.errors import StageError
     from objcam.transport import budget
 
@@ -149,16 +183,16 @@ def affordable(heights, pixels_of: list[int], support_plane: bool, channels: int
         if refused:
             refused[h] = f"above the refused {min(refused)}"
             continue
-        ests = [budget.estimate(px, budget.kept_texels(h * supersample, support_plane), channels) for px in pixels_of]
+        ests = estimates(h)
         try:
             for est in ests:
                 budget.check(est, None, memory)
         except StageError as e:
             refused[h] = str(e).split(" -- fix:")[0].strip()
             continue
-        secs = sum(e["seconds"] for e in ests)
+        secs = budget.plan(ests)["seconds"]
         if secs > max_seconds:
-            refused[h] = (f"planned {secs:,.0f} s (A, Gram and exact solve; objcam.transport.budget) > "
+            refused[h] = (f"planned {secs:,.0f} s (A, Gram, exact solves and verdicts; objcam.transport.budget) > "
                           f"transport.env_height_max_seconds {max_seconds:g}")
             continue
         ok.append(h)
@@ -181,10 +215,7 @@ def choose_height(out, params, art, groups: list[list], estimates, build, toml=N
     from objcam.transport.storage import load_group
 
     c0 = time.process_time()
-    pixels = [e["pixels"] for e in estimates(min(params.env_height_candidates))]
-    desc = art.description
-    heights, refused = affordable(params.env_height_candidates, pixels, desc.support_is_plane,
-                                  1 if desc.albedo_is_grey() else 3, 1, params.env_height_max_seconds)
+    heights, refused = affordable(params.env_height_candidates, estimates, params.env_height_max_seconds)
     if not heights:
         why = "; ".join(f"{h}: {r}" for h, r in refused.items())
         raise StageError(f"transport.env_height=auto: no candidate height fits ({why})",

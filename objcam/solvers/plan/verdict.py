@@ -36,7 +36,6 @@ Those maps' error is the prior's bias where the photo is silent, and none of the
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 
 from objcam import solvers
 from objcam.solvers.plan.defaults import (
@@ -68,15 +67,96 @@ def chi2_per_value(y: np.ndarray, fit: np.ndarray, sigma_rel: float) -> tuple[fl
     return float(np.mean(((y - fit) / sigma_abs) ** 2)), sigma_abs
 
 
-def texel_uncertainty(G: np.ndarray, D, sigma_rel: float, sigma_abs: float, lr_rel: float) -> np.ndarray:
-    """(N,) posterior standard deviation of each texel's radiance: ``sigma_abs sqrt(diag(Q^-1))``,
-    ``Q = G + ls D^T D + lr I`` with ls = LS_NOISE_FACTOR sigma_rel^2 and lr relative to mean(diag(G)) (the
-    analysis stage's objcam.analysis.texel_uncertainty on Q's Cholesky factor, the smoothness prior included)."""
-    from objcam.analysis import texel_uncertainty as uncertainty_from_factor
+#: Texels above which the verdict's Q is factorised in float32 on every core (objcam.analysis.inverse_diagonal):
+#: float64 on one BLAS thread took 73 s of a 153 s solve stage at 128 x 256 (16,640 texels, quiet machine) and
+#: 4 N x N float64 copies (8.9 GB). Float32 against float64 (bench/results.md, issue 26, session 19): at 128 x 256
+#: (forest, 2.3% noise) 2.2e-5 relative at most; at 64 x 128 on the resolution bench's captures 1.3-2.0e-5 at 2%
+#: noise but up to 8.2e-4 at 0.1% (a weaker prior, a worse-conditioned Q), no decision changed in any of them.
+#: 64 x 128 (4,224 texels, ~2 s in float64) stays in float64; float32 from 128 x 256 on.
+UNCERTAINTY_FLOAT64_MAX = 8192
+_BAND_BYTES = 64 << 20  # float64 rows of the Gram read (and corrected) at a time
 
-    ls_abs, lr_abs = solvers.absolute_weights(G, LS_NOISE_FACTOR * sigma_rel**2, max(lr_rel, 1e-6))
-    L = sla.cholesky(solvers.regularized_gram(G, D, ls_abs, lr_abs), lower=True, check_finite=False)
-    return uncertainty_from_factor(None, 0.0, L=L, sigma=sigma_abs)
+
+def data_gram(grams: np.ndarray, dropped: list[np.ndarray], dtype=np.float64,
+              order: np.ndarray | None = None) -> np.ndarray:
+    """(N, N) C-ordered ``dtype``: the channels' mean Gram matrix minus the dropped rows' own, ``mean_c (G_c -
+    A_c[drop]^T A_c[drop])``, its rows and columns in ``order`` (a permutation of the N texels; None: as stored).
+    ``grams``: (C, N, N) float64 (gram.npy, memory-mapped); ``dropped``: per channel the rows of A the solve did
+    not fit (k, N) float64, or []. Built band by band in float64 and stored in ``dtype``: no N x N float64 copy
+    besides the result (the Gram file's pages are the page cache's)."""
+    c, n = grams.shape[0], grams.shape[-1]
+    idx = np.arange(n) if order is None else np.asarray(order, dtype=np.int64)
+    out = np.empty((n, n), dtype=dtype)
+    drop = [a[:, idx] for a in dropped if a.shape[0]]
+    step = max(1, _BAND_BYTES // (8 * n))
+    for r0 in range(0, n, step):
+        r1 = min(n, r0 + step)
+        rows = slice(r0, r1) if order is None else idx[r0:r1]
+        band = np.array(grams[0, rows], dtype=np.float64)
+        for ch in range(1, c):
+            band += grams[ch, rows]
+        if order is not None:
+            band = np.take(band, idx, axis=1)  # 3x faster than band[:, idx] at 16,640 columns
+        if c > 1:
+            band /= c
+        for a in drop:
+            band -= (a[:, r0:r1].T @ a) / c
+        out[r0:r1] = band
+    return out
+
+
+def texel_uncertainty(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, sigma_abs: float,
+                      lr_rel: float, above: np.ndarray | None = None, dtype=None) -> tuple[np.ndarray, dict]:
+    """((N,) posterior standard deviation of each texel's radiance, {"precision", "exact_texels"}):
+    ``sigma_abs sqrt(diag(Q^-1))``, ``Q = G + ls D^T D + lr I`` with G the data Gram matrix (:func:`data_gram` of
+    ``grams`` and ``dropped``), ls = LS_NOISE_FACTOR sigma_rel^2 and lr relative to mean(diag(G)) (the smoothness
+    prior included).
+
+    ``above`` (N,): the values the caller compares the spread with. Where the lower bound ``sigma_abs /
+    sqrt(Q_jj)`` (the spread were every other texel known: ``(Q^-1)_jj >= 1 / Q_jj``) already exceeds it, that
+    bound is returned (the comparison's answer is exact) and the texel is ordered first; the rest are computed
+    from the factor's trailing block (objcam.analysis.inverse_diagonal): N^3 / 3 + m^3 / 3 flops for m of them.
+    ``dtype``: None for float32 on every core above UNCERTAINTY_FLOAT64_MAX texels, else float64 on one thread;
+    Q is formed and factorised in place (one N x N array); a float32 Q that is not positive definite in float32
+    is redone in float64."""
+    from objcam.analysis import inverse_diagonal
+    from objcam.threads import cores
+
+    n = grams.shape[-1]
+    diag = (sum(np.asarray(np.diagonal(grams[c]), np.float64) for c in range(grams.shape[0]))
+            - sum(np.einsum("ij,ij->j", a, a) for a in dropped)) / grams.shape[0]
+    scale = float(np.mean(diag)) if n else 0.0  # solvers.absolute_weights' unit: mean(diag(G))
+    ls_abs, lr_abs = LS_NOISE_FACTOR * sigma_rel**2 * scale, max(lr_rel, 1e-6) * scale
+    P = (D.T @ D).tocoo() if D is not None and ls_abs > 0 and D.shape[0] else None
+    qdiag = diag + lr_abs
+    if P is not None:
+        P.sum_duplicates()
+        qdiag += ls_abs * np.bincount(P.row[P.row == P.col], P.data[P.row == P.col], minlength=n)
+    s = sigma_abs / np.sqrt(qdiag)  # lower bounds
+    need = np.ones(n, bool) if above is None else ~(s > above)
+    order = np.concatenate([np.flatnonzero(~need), np.flatnonzero(need)])
+    m = int(need.sum())
+    first = np.dtype(dtype or (np.float32 if n > UNCERTAINTY_FLOAT64_MAX else np.float64))
+    info = {"precision": first.name, "exact_texels": m}
+    if m == 0:
+        return s, info
+    inv = np.empty(n, np.int64)
+    inv[order] = np.arange(n)
+    for dt in dict.fromkeys([first, np.dtype(np.float64)]):
+        Q = data_gram(grams, dropped, dt, None if m == n else order)
+        if P is not None:  # a few entries per row: added in place, in Q's precision
+            Q[inv[P.row], inv[P.col]] += ls_abs * P.data
+        Q[np.diag_indices_from(Q)] += lr_abs
+        try:
+            var = inverse_diagonal(Q, overwrite=True, threads=cores() if dt == np.float32 else 1, last=m)
+        except np.linalg.LinAlgError:
+            if dt == np.float64:
+                raise
+            del Q
+            continue
+        s[order[n - m :]] = sigma_abs * np.sqrt(var)
+        return s, info | {"precision": dt.name}
+    raise AssertionError("unreachable")
 
 
 def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
@@ -97,24 +177,27 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
                  "pixels_excluded": float(1.0 - d.use.mean()),
                  "pixels_rejected": float(0.0 if sol.rejected is None else sol.rejected.sum() / max(d.use.sum(), 1)),
                  "below_horizon_energy": float(energy[~up].sum() / total)}
-    G = tr.gram().mean(axis=0)
-    if not use.all():
-        G = G - sum(solvers.gram(tr.A[c][~use]) for c in range(tr.A.shape[0])) / tr.A.shape[0]
+    grams, nc = tr.gram(), tr.A.shape[0]  # (C, N, N), memory-mapped: read in bands, never copied whole
+    dropped = [] if use.all() else [np.asarray(tr.A[c][~use], np.float64) for c in range(nc)]
+    diag = (sum(np.asarray(np.diagonal(grams[c]), np.float64) for c in range(nc))
+            - sum(np.einsum("ij,ij->j", a, a) for a in dropped)) / nc  # diag(G) of the fitted pixels
     jb = int(np.argmax(lum))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(tr.directions[jb, 2], -1, 1))))
-    rec["brightest_seen"] = float(relative_column_norms(np.diag(G), tr.directions)[jb])
+    rec["brightest_seen"] = float(relative_column_norms(diag, tr.directions)[jb])
     if sigma_rel:
         rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
         D = solvers.difference_operator(tr.grid, tr.texel_index)
-        s = texel_uncertainty(G, D, sigma_rel, sigma_abs, lr_rel)
+        # what a viewer sees: texels whose spread exceeds both their value and a fiftieth of the map's
+        # 99th-percentile brightness (the tonemap's white): a dark, uncertain but flat background passes
+        white = float(np.percentile(lum[up], 99)) if up.any() else 0.0
+        above = np.maximum(lum, VISIBLE_FRACTION * white)  # >= lum: a spread above it answers both tests
+        s, how = texel_uncertainty(grams, dropped, D, sigma_rel, sigma_abs, lr_rel, above=above)
+        rec["uncertainty_precision"], rec["uncertainty_exact_texels"] = how["precision"], how["exact_texels"]
         unsure = s > lum
         sky = max(float(omega[up].sum()), 1e-300)
         rec["uncertain_area"] = float(omega[unsure & up].sum() / sky)
         rec["uncertain_energy"] = float(energy[unsure].sum() / total)
-        # what a viewer sees: texels whose spread exceeds both their value and a fiftieth of the map's
-        # 99th-percentile brightness (the tonemap's white): a dark, uncertain but flat background passes
-        white = float(np.percentile(lum[up], 99)) if up.any() else 0.0
-        shown = s > np.maximum(lum, VISIBLE_FRACTION * white)
+        shown = s > above
         rec["uncertain_visible_area"] = float(omega[shown & up].sum() / sky)
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
