@@ -314,6 +314,18 @@ class Gather:
         self.radius = float(np.linalg.norm(v - self.centre, axis=1).max()) * (1 + 1e-6) + 1e-9
         self.stats = GatherStats()
 
+    def _cones(self, pos, on_plane):
+        """Each receiver's cone to the object's bounding sphere and which rays it takes: (axis (P, 3) unit vectors
+        to the sphere's centre, cos_a (P,) the cone's half-angle cosine (-1 inside the sphere), cone_only (P,)
+        bool (on the plane, outside the sphere: cone rays only), split (P,) bool (off the plane, outside: half
+        cone, half cosine rays)); receivers that are neither take cosine rays only."""
+        vec = self.centre[None, :] - pos
+        dist = np.linalg.norm(vec, axis=1)
+        outside = dist > self.radius
+        axis = vec / np.maximum(dist, 1e-30)[:, None]
+        cos_a = np.where(outside, np.sqrt(np.clip(1 - (self.radius / np.maximum(dist, 1e-30)) ** 2, 0, 1)), -1.0)
+        return axis, cos_a, outside & on_plane, outside & ~on_plane
+
     def _directions(self, pos, nrm, keys, n_rays, on_plane):
         """Per receiver n_rays directions and weights (P, R, 3), (P, R): cone rays to the object's bounding
         sphere and/or cosine rays (see the module docstring); weight = the ray's share of the receiver's
@@ -325,13 +337,7 @@ class Gather:
         u = to_unit(lat[None, :, 0] ^ s1[:, None])
         w = to_unit(lat[None, :, 1] ^ s2[:, None])
         t, b = _frames(nrm)
-        vec = self.centre[None, :] - pos
-        dist = np.linalg.norm(vec, axis=1)
-        outside = dist > self.radius
-        axis = vec / np.maximum(dist, 1e-30)[:, None]
-        cos_a = np.where(outside, np.sqrt(np.clip(1 - (self.radius / np.maximum(dist, 1e-30)) ** 2, 0, 1)), -1.0)
-        cone_only = outside & on_plane
-        split = outside & ~on_plane
+        axis, cos_a, cone_only, split = self._cones(pos, on_plane)
         cone = cone_only | split
         # each receiver takes cosine rays (inside the sphere), cone rays (on the plane) or both (split): each set
         # is computed only for the receivers that use it (the formulas are per receiver, so the same bits)
@@ -389,13 +395,7 @@ class Gather:
         lat = sobol4(R)
         s1, s2 = _shifts(keys, self.seed)
         t3, t4 = _shifts(keys, self.seed + 7919)
-        vec = self.centre[None, :] - pos
-        dist = np.linalg.norm(vec, axis=1)
-        outside = dist > self.radius
-        axis = vec / np.maximum(dist, 1e-30)[:, None]
-        cos_a = np.where(outside, np.sqrt(np.clip(1 - (self.radius / np.maximum(dist, 1e-30)) ** 2, 0, 1)), -1.0)
-        cone_only = outside & on_plane
-        split = outside & ~on_plane
+        axis, cos_a, cone_only, split = self._cones(pos, on_plane)
         kind = np.where(cone_only, 1, np.where(split, 2, 0)).astype(np.uint32)  # 0 cosine, 1 cone, 2 both
         t, b = _frames(nrm)
         ta, ba = _frames(axis)
