@@ -105,6 +105,13 @@ def data_gram(grams: np.ndarray, dropped: list[np.ndarray], dtype=np.float64,
     return out
 
 
+def data_gram_diagonal(grams: np.ndarray, dropped: list[np.ndarray]) -> np.ndarray:
+    """(N,) float64: the diagonal of :func:`data_gram` (the channels' mean Gram of the fitted pixels) without
+    forming it: ``grams`` (C, N, N) and ``dropped`` as there."""
+    return (sum(np.asarray(np.diagonal(grams[c]), np.float64) for c in range(grams.shape[0]))
+            - sum(np.einsum("ij,ij->j", a, a) for a in dropped)) / grams.shape[0]
+
+
 def texel_uncertainty(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, sigma_abs: float,
                       lr_rel: float, above: np.ndarray | None = None, dtype=None) -> tuple[np.ndarray, dict]:
     """((N,) posterior standard deviation of each texel's radiance, {"precision", "exact_texels"}):
@@ -123,8 +130,7 @@ def texel_uncertainty(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel
     from objcam.threads import cores
 
     n = grams.shape[-1]
-    diag = (sum(np.asarray(np.diagonal(grams[c]), np.float64) for c in range(grams.shape[0]))
-            - sum(np.einsum("ij,ij->j", a, a) for a in dropped)) / grams.shape[0]
+    diag = data_gram_diagonal(grams, dropped)
     scale = float(np.mean(diag)) if n else 0.0  # solvers.absolute_weights' unit: mean(diag(G))
     ls_abs, lr_abs = LS_NOISE_FACTOR * sigma_rel**2 * scale, max(lr_rel, 1e-6) * scale
     P = (D.T @ D).tocoo() if D is not None and ls_abs > 0 and D.shape[0] else None
@@ -179,8 +185,7 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
                  "below_horizon_energy": float(energy[~up].sum() / total)}
     grams, nc = tr.gram(), tr.A.shape[0]  # (C, N, N), memory-mapped: read in bands, never copied whole
     dropped = [] if use.all() else [np.asarray(tr.A[c][~use], np.float64) for c in range(nc)]
-    diag = (sum(np.asarray(np.diagonal(grams[c]), np.float64) for c in range(nc))
-            - sum(np.einsum("ij,ij->j", a, a) for a in dropped)) / nc  # diag(G) of the fitted pixels
+    diag = data_gram_diagonal(grams, dropped)
     jb = int(np.argmax(lum))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(tr.directions[jb, 2], -1, 1))))
     rec["brightest_seen"] = float(relative_column_norms(diag, tr.directions)[jb])
