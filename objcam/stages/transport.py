@@ -124,7 +124,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         per_cam, mapping, planned = _build_height(inputs, params, art, by_camera, height, inputs.out)
     else:  # built already, moved into place by choose_height
         per_cam, mapping = choice.pop("_built")
-        planned = _planned(_estimates(params, art, by_camera, height))
+        planned = _planned(params, art, by_camera, height)
     write_index(inputs.out, mapping)
     metrics: dict = {}
     first = per_cam[0] if per_cam else {}
@@ -168,11 +168,12 @@ def _estimates(params: Params, art, groups: list[list], height: int) -> list[dic
     return out
 
 
-def _planned(ests: list[dict]) -> dict:
-    """The build's plan from its cameras' estimates (objcam.transport.budget.plan)."""
+def _planned(params: Params, art, groups: list[list], height: int) -> dict:
+    """The build's plan (objcam.transport.budget.plan: the largest peak, the summed seconds) from its cameras'
+    :func:`_estimates`."""
     from objcam.transport import budget
 
-    return budget.plan(ests)
+    return budget.plan(_estimates(params, art, groups, height))
 
 
 def _check_budget(inputs: StageInputs, params: Params, art, groups: list[list], height: int) -> None:
@@ -193,7 +194,7 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
     from objcam.transport.geometry import SceneGeometry
 
     fine_height = height * params.supersample  # A's grid (objcam.solvers.refine)
-    planned = _planned(_estimates(params, art, groups, height))
+    planned = _planned(params, art, groups, height)
     geo = SceneGeometry.load(art.description, art.folder, env_height=fine_height, upsample=params.path_upsample)
     per_cam, mapping = [], {}
     for i, targets in enumerate(groups):
