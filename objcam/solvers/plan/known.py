@@ -23,9 +23,10 @@ import scipy.sparse as sp
 
 from objcam import solvers
 from objcam.envmap import EnvGrid
-from objcam.solvers.basis import merge_gram, restrict_weak, solved_edges, texel_basis
+from objcam.solvers.basis import MERGE_BLOCK_BYTES, merge_gram, restrict_weak, solved_edges, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import EdgeResult, solve_edges
+from objcam.solvers.lowrank import lowrank_update
 from objcam.solvers.outliers import outlier_rows
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
@@ -361,8 +362,18 @@ def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: lis
         Ao = np.asarray(tr.A[c][rows], np.float32)
         if P is not None:
             Ao = np.asarray((P.T @ Ao.T).T, np.float32)
-        grams[c] = grams[c] - (Ao.T @ (drop[:, None].astype(np.float32) * Ao)).astype(np.float64)
-        rhs[c] = rhs[c] - Ao.T.astype(np.float64) @ (drop[:, None] * Yo[:, chans[c]])
+        Aw = drop[:, None].astype(np.float32) * Ao
+        G, out = grams[c], np.empty(grams[c].shape)
+        # by blocks of rows: the one new N x N array and small temporaries (the whole float32 product and its
+        # float64 copy were two more N x N arrays, each a fresh mapping whose pages fault in)
+        step = max(1, MERGE_BLOCK_BYTES // (8 * max(G.shape[1], 1)))
+        for r0 in range(0, G.shape[0], step):
+            np.subtract(G[r0:r0 + step], Ao[:, r0:r0 + step].T @ Aw, out=out[r0:r0 + step])
+        grams[c] = out
+        U = Ao.T.astype(np.float64)
+        # the PCG preconditioner's low-rank bound of the new Gram from the old one's sketch (objcam.solvers.lowrank)
+        lowrank_update(out, G, U, drop)
+        rhs[c] = rhs[c] - U @ (drop[:, None] * Yo[:, chans[c]])
     return grams, rhs, yy - np.einsum("i,ij,ij->j", drop, Yo, Yo)
 
 
