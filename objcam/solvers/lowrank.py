@@ -29,6 +29,9 @@ POWER = 2
 
 _cache: dict[int, tuple] = {}
 _lock = threading.Lock()
+# held while a range finder runs: the luminance and chroma solves (two threads) ask for the same Gram's pairs at
+# once, and the second waits for the first's instead of computing them again
+_compute = threading.Lock()
 
 
 def rank(n: int) -> int:
@@ -96,10 +99,14 @@ def gram_lowrank(G: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.nd
     hit = _cached(G, k)
     if hit is not None:
         return hit[2]
-    kk = rank(G.shape[0]) if k is None else k
-    sk = sketch(G, kk)
-    out = from_sketch(*sk, kk)
-    _store(G, k, out, sk)
+    with _compute:
+        hit = _cached(G, k)  # (made by another thread meanwhile)
+        if hit is not None:
+            return hit[2]
+        kk = rank(G.shape[0]) if k is None else k
+        sk = sketch(G, kk)
+        out = from_sketch(*sk, kk)
+        _store(G, k, out, sk)
     return out
 
 
