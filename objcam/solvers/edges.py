@@ -61,8 +61,9 @@ class EdgeResult:
     edge_scale: float = 0.0  # s
     kept_edges: float = 0.0  # fraction of edges above eps at the end (where the prior acts like TV)
     tone: float = 0.0  # the tone exponent p used (0: none)
-    # each block's (N', N') Q buffer of the last step: scratch that a solve continuing from or warm-started by
-    # this result rewrites instead of allocating (a fresh 79 MB array at 64 x 128 is a mapping whose pages fault in)
+    # with solve_edges(keep_buffers=True): each block's (N', N') Q buffer of the last step, scratch that a solve
+    # continuing from or warm-started by this result rewrites instead of allocating (a fresh 79 MB array at
+    # 64 x 128 is a mapping whose pages fault in)
     buffers: list = field(default_factory=list, repr=False, compare=False)
 
 
@@ -110,7 +111,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 eps_rel: float = 0.05, tol: float = 1e-4,
                 solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
                 tone_floor: float = 0.05, basis: sp.spmatrix | None = None, merged: bool = False,
-                start: EdgeResult | None = None, warm: EdgeResult | None = None) -> EdgeResult:
+                start: EdgeResult | None = None, warm: EdgeResult | None = None,
+                keep_buffers: bool = False) -> EdgeResult:
     """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
     grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
@@ -127,6 +129,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     weights instead of a new quadratic solve, so the prior stays the same function F.
     warm: an earlier result on similar data whose free sets (x > 0) start the first exact solve (a fresh solve,
     its own edge scale, but not a cold start); ignored with ``start``.
+    keep_buffers: the result holds the step's Q matrices (``buffers``) for a later solve given it as ``start``
+    or ``warm``, which takes them over (else they are freed on return: one per block, N'^2 floats each).
     """
     M = edge_means(D) if tone > 0 else None
     ridge_w = np.ones(D.shape[1])  # texels per unknown: the ridge of the fine x
@@ -207,4 +211,5 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
     if basis is not None:
         X = np.asarray(P @ X)
-    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone), buffers=Qs)
+    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone),
+                      buffers=Qs if keep_buffers else [])

@@ -249,10 +249,13 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
         rhs = [np.asarray(basis.T @ B) for B in rhs]
     del grams_all, G_ref, G
 
-    def one(job: tuple) -> EdgeResult:  # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from)
-        w, steps, (g, b, y2), start, warm = job + (None,) * (5 - len(job))
+    def one(job: tuple) -> EdgeResult:
+        # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from, whether a later run will
+        # continue or warm from this one: it then keeps its Q buffers for that run)
+        w, steps, (g, b, y2), start, warm, keep = job + (None,) * (6 - len(job))
         return solve_edges(g, b, chans, y2, D, w, lr_abs, steps=steps, eps_rel=eps, tone=params.edge_tone,
-                           tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm)
+                           tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm,
+                           keep_buffers=bool(keep))
 
     # independent solves (luminance and chroma): a thread each (the caller holds one BLAS thread)
     if params.outliers == "keep":
@@ -327,7 +330,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         moved[np.flatnonzero(use)[sel]] = True
         return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans, merged_on), d)
 
-    runs = parallel_map(one, [(w, k0, data) for w in weights])
+    runs = parallel_map(one, [(w, k0, data, None, None, True) for w in weights])
     rows, drop, rec = outliers(runs)
     if not rows.any():
         rec["rounds"] = 1
@@ -341,6 +344,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         # stands and the solve continues without it
         rec["rounds"] = 1
     else:
+        # (they keep no buffers: held through the second downdate they would add to the stage's peak memory)
         runs = parallel_map(one, [(w, k0, now, None, r) for w, r in zip(weights, runs)])
         rows, drop, rec = outliers(runs)
         rec.update(rounds=2, first_round_pixels=first)
