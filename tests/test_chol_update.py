@@ -116,7 +116,7 @@ def test_an_indefinite_schur_complement_falls_back_to_a_fresh_factor(prob, monke
     def fail(*a, **k):
         raise np.linalg.LinAlgError("not definite")
 
-    monkeypatch.setattr("scipy.linalg.cho_factor", fail)
+    monkeypatch.setattr("objcam.solvers.nogil.cho_factor", fail)
     upd(F, [0], X, G)
     assert stats.factorizations == 2 and stats.chol_updates == 0
     ref = _fresh(Q, B, F, [0])[0][:, :1]

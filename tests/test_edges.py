@@ -161,3 +161,25 @@ def test_broken_tone_weighting_fails_the_bounds():
     _, _, sun, _ = _tone_errors(10.0)
     print(f"sun at {sun:.3f} of the truth")
     assert not abs(sun - 1) < 0.25, sun
+
+
+def test_a_continued_run_takes_over_its_starts_q_buffers_with_the_same_answer():
+    """solve_edges(keep_buffers=True) hands its step's Q matrices to the run that continues it (``start``) or warms
+    from it: they are rewritten, not reallocated, and the continued run's answer is the same."""
+    grid, texels, A, _, y = _problem()
+    G = gram(A)
+    D = difference_operator(grid, texels)
+    ls_abs, lr_abs = absolute_weights(G, 1e-3, 1e-6)
+    args = ([G], [(A.T @ y)[:, None]], [[0]], np.array([y @ y]), D, ls_abs, lr_abs)
+    kept = solve_edges(*args, steps=2, eps_rel=0.01, tone=0.3, keep_buffers=True)
+    plain = solve_edges(*args, steps=2, eps_rel=0.01, tone=0.3)
+    assert plain.buffers == [] and len(kept.buffers) == 1 and kept.buffers[0].shape == G.shape
+    assert np.array_equal(kept.x, plain.x)
+    buf = kept.buffers[0]
+    a = solve_edges(*args, steps=4, eps_rel=0.01, tone=0.3, start=kept, keep_buffers=True)
+    b = solve_edges(*args, steps=4, eps_rel=0.01, tone=0.3, start=plain)
+    assert kept.buffers == [] and a.buffers[0] is buf  # taken over and rewritten in place
+    assert np.array_equal(a.x, b.x) and a.objective_history == b.objective_history
+    # the buffer holds the last step's Q: G plus the prior's sparse stencil (a few entries per row), not G
+    extra = np.count_nonzero(buf - G)
+    assert 0 < extra <= 12 * G.shape[0]

@@ -13,7 +13,7 @@ import objcam.solvers.products as products
 from objcam.envmap import EnvGrid
 from objcam.solvers import absolute_weights, difference_operator, regularized_gram, solve_exact
 from objcam.solvers.edges import solve_edges
-from objcam.solvers.lowrank import gram_lowrank, nystrom
+from objcam.solvers.lowrank import gram_lowrank, lowrank_update, nystrom
 from objcam.threads import single_blas_thread
 from tests.toy_scenes import cone_shadow_transport, sky_with_sun
 
@@ -68,6 +68,40 @@ def test_nystrom_is_a_lower_bound_holding_the_top_of_the_spectrum(prob):
     assert not abs(np.sort(lam_r)[::-1][0] - ev[0]) <= 1e-8 * ev[0]
     # computed once per array
     assert gram_lowrank(G) is gram_lowrank(G) and gram_lowrank(G.copy()) is not gram_lowrank(G)
+
+
+def test_a_downdated_grams_bound_from_the_old_sketch():
+    """A^T A with a few rows dropped (w 1) or down-weighted (w in (0, 1); objcam.solvers.plan.known.downdated):
+    the pairs derived from the old Gram's sketch are a lower bound of the new Gram and hold its top spectrum as
+    a fresh Nystrom does."""
+    rng = np.random.default_rng(5)
+    grid = EnvGrid(32)
+    keep = np.flatnonzero(grid.directions().reshape(-1, 3)[:, 2] > 0)
+    A = cone_shadow_transport(grid, keep, 3 * keep.size, rng).astype(np.float64)
+    G = A.T @ A
+    gram_lowrank(G)
+    # the brightest rows: the ones that move G's top spectrum most
+    rows = np.argsort(-np.abs(A).sum(axis=1))[:24]
+    U = A[rows].T
+    w = np.concatenate((np.ones(12), rng.uniform(0.2, 0.9, 12)))
+    G2 = G - (U * w) @ U.T
+    assert lowrank_update(G2, G, U, w)
+    V, lam = gram_lowrank(G2)  # the cached derived pairs
+    with single_blas_thread():
+        ev = np.linalg.eigvalsh(G2)[::-1]
+        rest = np.linalg.eigvalsh(G2 - (V * lam) @ V.T)
+        moved = np.linalg.eigvalsh(G)[::-1]
+    assert abs(moved[0] - ev[0]) > 1e-3 * ev[0]  # (the test's premise: the rows move the top of the spectrum)
+    assert rest.min() >= -1e-10 * ev[0]
+    assert abs(lam[0] - ev[0]) <= 1e-8 * ev[0] and abs(lam[9] - ev[9]) <= 1e-3 * ev[0]
+    lamf = nystrom(G2)[1]
+    assert np.abs(lam[:10] - lamf[:10]).max() <= 1e-3 * ev[0]
+    # broken: the old pairs are not a bound of the new Gram
+    V0, lam0 = gram_lowrank(G)
+    with single_blas_thread():
+        assert np.linalg.eigvalsh(G2 - (V0 * lam0) @ V0.T).min() < -1e-6 * ev[0]
+    # without the old Gram's sketch nothing is derived
+    assert not lowrank_update(G2.copy(), G.copy(), U, w)
 
 
 def test_pcg_free_blocks_reach_the_cholesky_minimiser(prob):

@@ -57,7 +57,14 @@ def texel_basis(grid: EnvGrid, texel_index: np.ndarray, group: float) -> sp.csr_
     return sp.csr_matrix((np.ones(t.size), (np.arange(t.size), gid)), shape=(t.size, int(gid.max()) + 1))
 
 
-def merge_gram(P: sp.spmatrix, G: np.ndarray, block_bytes: int = 64 * 2**20) -> np.ndarray:
+#: bytes of G's columns merged at a time by :func:`merge_gram`: below glibc's largest mmap threshold (32 MB), so
+#: the freed block's memory serves the next one; a larger block is a fresh mapping each time whose pages fault in
+#: (64 MB blocks: 0.97-1.2 CPU s for the 64 x 128 merge in a fresh process, 4 MB: 0.13-0.24 s; bench/results.md,
+#: issue 26 session 20)
+MERGE_BLOCK_BYTES = 4 * 2**20
+
+
+def merge_gram(P: sp.spmatrix, G: np.ndarray, block_bytes: int = MERGE_BLOCK_BYTES) -> np.ndarray:
     """``P^T G P`` (N', N') for a symmetric (N, N) G: a Gram or regularised Gram matrix on the merged basis.
 
     Summed over blocks of G's rows (G may be a memory-mapped file): block b adds ``P_b^T (G_b P)`` to the rows

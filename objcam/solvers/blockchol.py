@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.linalg import lapack
+from objcam.solvers import nogil
 
 
 class Factor:
@@ -23,8 +23,7 @@ class Factor:
         self.jitter = 0.0
         # S is symmetric: hand LAPACK its transpose, a Fortran-ordered view of the same matrix (a plain copy
         # inside the wrapper instead of a transposing one; none at all when it may overwrite S)
-        c, info = lapack.dpotrf(S.T if S.flags.c_contiguous else S, lower=0, clean=1,
-                                overwrite_a=int(remake is not None))
+        c, info = nogil.potrf(S.T if S.flags.c_contiguous else S, overwrite=remake is not None)
         if info != 0:
             S = remake() if remake is not None else S
             dmax = float(np.max(np.abs(np.diag(S)))) if S.size else 1.0
@@ -34,14 +33,14 @@ class Factor:
                 self.jitter = rel * dmax
                 Sj = S.copy()
                 Sj[np.diag_indices_from(Sj)] += self.jitter
-                c, info = lapack.dpotrf(Sj, lower=0, clean=1, overwrite_a=1)
+                c, info = nogil.potrf(Sj, overwrite=True)
                 rel *= 100.0
                 if rel > 1e3:
                     raise np.linalg.LinAlgError("free block is not positive semi-definite")
         self.c = c
 
     def _solve(self, R: np.ndarray) -> np.ndarray:
-        x, info = lapack.dpotrs(self.c, R, lower=0)
+        x, info = nogil.potrs(self.c, R)
         if info != 0:
             raise np.linalg.LinAlgError(f"dpotrs failed ({info})")
         return x
@@ -130,12 +129,10 @@ class UpdatedFree:
 
     def _border(self, base: CholBase, add: np.ndarray) -> CholBase | None:
         """base extended by the variables ``add``; None when their Schur complement is not positive definite."""
-        from scipy.linalg import solve_triangular
-
         s, a = base.S.size, add.size
-        K = solve_triangular(base.U, self.Q[np.ix_(base.S, add)], trans="T", lower=False, check_finite=False)
+        K = nogil.trtrs(base.U, self.Q[np.ix_(base.S, add)], trans=True)
         Saa = free_block(self.Q, add) - K.T @ K
-        Uaa, info = lapack.dpotrf(Saa, lower=0, clean=1, overwrite_a=1)
+        Uaa, info = nogil.potrf(Saa, overwrite=True)
         if info != 0:
             return None
         U = np.zeros((s + a, s + a), order="F")
@@ -145,8 +142,6 @@ class UpdatedFree:
         return CholBase(np.concatenate([base.S, add]), U)
 
     def __call__(self, F: np.ndarray, cols, X: np.ndarray, G: np.ndarray) -> None:
-        from scipy.linalg import cho_factor, cho_solve, solve_triangular
-
         Q, B, stats = self.Q, self.B, self.stats
         for group in free_groups(F, cols).values():
             inF = F[:, group[0]]
@@ -179,9 +174,9 @@ class UpdatedFree:
             if zpos.size:
                 E = np.zeros((base.S.size, zpos.size))
                 E[zpos, np.arange(zpos.size)] = 1.0
-                W = solve_triangular(U, E, trans="T", lower=False, check_finite=False)
+                W = nogil.trtrs(U, E, trans=True)
                 try:
-                    Sz = cho_factor(W.T @ W, check_finite=False)
+                    Sz = nogil.cho_factor(W.T @ W)
                 except np.linalg.LinAlgError:  # (Q_SS^-1)_ZZ not numerically definite: this block afresh
                     stats.chol_updates -= 1
                     for c in group:
@@ -191,10 +186,10 @@ class UpdatedFree:
 
             def constrained(R: np.ndarray) -> np.ndarray:
                 """Q_FF^-1 R_F on S's order, 0 on Z (R (s, m))."""
-                x, info = lapack.dpotrs(U, R, lower=0)
+                x, info = nogil.potrs(U, R)
                 if zpos.size:
-                    mu = -cho_solve(Sz, x[zpos], check_finite=False)
-                    x = x + solve_triangular(U, W @ mu, lower=False, check_finite=False)
+                    mu = -nogil.cho_solve(Sz, x[zpos])
+                    x = x + nogil.trtrs(U, W @ mu)
                     x[zpos] = 0.0
                 return x
 

@@ -61,6 +61,10 @@ class EdgeResult:
     edge_scale: float = 0.0  # s
     kept_edges: float = 0.0  # fraction of edges above eps at the end (where the prior acts like TV)
     tone: float = 0.0  # the tone exponent p used (0: none)
+    # with solve_edges(keep_buffers=True): each block's (N', N') Q buffer of the last step, scratch that a solve
+    # continuing from or warm-started by this result rewrites instead of allocating (a fresh 79 MB array at
+    # 64 x 128 is a mapping whose pages fault in)
+    buffers: list = field(default_factory=list, repr=False, compare=False)
 
 
 def huber(r: np.ndarray, eps: float) -> np.ndarray:
@@ -107,7 +111,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 eps_rel: float = 0.05, tol: float = 1e-4,
                 solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
                 tone_floor: float = 0.05, basis: sp.spmatrix | None = None, merged: bool = False,
-                start: EdgeResult | None = None, warm: EdgeResult | None = None) -> EdgeResult:
+                start: EdgeResult | None = None, warm: EdgeResult | None = None,
+                keep_buffers: bool = False) -> EdgeResult:
     """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
     grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
@@ -124,6 +129,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     weights instead of a new quadratic solve, so the prior stays the same function F.
     warm: an earlier result on similar data whose free sets (x > 0) start the first exact solve (a fresh solve,
     its own edge scale, but not a cold start); ignored with ``start``.
+    keep_buffers: the result holds the step's Q matrices (``buffers``) for a later solve given it as ``start``
+    or ``warm``, which takes them over (else they are freed on return: one per block, N'^2 floats each).
     """
     M = edge_means(D) if tone > 0 else None
     ridge_w = np.ones(D.shape[1])  # texels per unknown: the ridge of the fine x
@@ -136,8 +143,6 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         M = None if M is None else sp.csr_matrix(M @ P)
         ridge_w = group_sizes(P)
     n = D.shape[1]
-    # the first (cold) solves start from the coarse problem's free set (objcam.solvers.multilevel)
-    coarse = aggregates(D) if solve is solve_exact and n >= MIN_UNKNOWNS else None
     n_ch = sum(len(c) for c in chans)
     X = np.zeros((n, n_ch))
     if tone < 0 or tone_floor <= 0:
@@ -159,6 +164,10 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         if tone > 0:
             bw = tone_weights(M, X, tone, tone_floor)
         w = bw * s / np.maximum(edge_norms(D, X), eps)
+    # the first (cold) solves start from the coarse problem's free set (objcam.solvers.multilevel); a run that
+    # continues or is warm-started has its free sets and never uses it
+    cold = any(p is None for p in passive)
+    coarse = aggregates(D) if cold and solve is solve_exact and n >= MIN_UNKNOWNS else None
 
     def objective(X: np.ndarray) -> float:
         data = 0.0
@@ -170,6 +179,10 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         return data + float(yy.sum()) + lr_abs * float(np.einsum("n,nc,nc->", ridge_w, X, X)) + prior
 
     Qs: list[np.ndarray | None] = [None] * len(grams)  # each block's Q, rewritten in place at every step
+    donor = start if start is not None else warm
+    if donor is not None and len(donor.buffers) == len(grams):
+        Qs = [q if q is not None and q.shape == (n, n) else None for q in donor.buffers]
+        donor.buffers = []  # (handed over: the donor's last Q is overwritten by the first step here)
     for step in range(first, steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
@@ -198,4 +211,5 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
     if basis is not None:
         X = np.asarray(P @ X)
-    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone))
+    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone),
+                      buffers=Qs if keep_buffers else [])

@@ -29,6 +29,9 @@ POWER = 2
 
 _cache: dict[int, tuple] = {}
 _lock = threading.Lock()
+# held while a range finder runs: the luminance and chroma solves (two threads) ask for the same Gram's pairs at
+# once, and the second waits for the first's instead of computing them again
+_compute = threading.Lock()
 
 
 def rank(n: int) -> int:
@@ -39,9 +42,9 @@ def rank(n: int) -> int:
     return max(MIN_RANK, int(round(np.sqrt(n))))
 
 
-def nystrom(G: np.ndarray, k: int | None = None, power: int = POWER, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(V (N, r), lam (r,)): ``V diag(lam) V^T`` a rank-r (r <= k) Nystrom approximation of the symmetric PSD G
-    (N, N) from below, V orthonormal, lam >= 0 descending; k None: :func:`rank`. Cost ~2 (power + 1) N^2 (k + OVERSAMPLE) flops."""
+def sketch(G: np.ndarray, k: int | None = None, power: int = POWER, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(O (N, m), Y = G O): the range finder's orthonormal test matrix (G^q times a Gaussian one, m = k +
+    OVERSAMPLE) and G's product with it, for :func:`from_sketch`. k None: :func:`rank`."""
     n = G.shape[0]
     k = rank(n) if k is None else k
     m = min(n, k + OVERSAMPLE)
@@ -49,7 +52,13 @@ def nystrom(G: np.ndarray, k: int | None = None, power: int = POWER, seed: int =
     Om = np.linalg.qr(rng.standard_normal((n, m)))[0]
     for _ in range(power):  # subspace iteration: the range of G^q O follows the dominant eigenvectors
         Om = np.linalg.qr(G @ Om)[0]
-    Y = G @ Om
+    return Om, G @ Om
+
+
+def from_sketch(Om: np.ndarray, Y: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(V (N, r), lam (r,)), r <= k: the Nystrom approximation ``Y (O^T Y)^+ Y^T`` of the G with ``Y = G O``,
+    a lower bound of G for any orthonormal O (Tropp et al.'s stable form)."""
+    n = Om.shape[0]
     # the stable Nystrom form: shift by nu so that O^T Y_nu is safely positive definite, remove it afterwards
     nu = np.sqrt(n) * np.finfo(float).eps * max(float(np.linalg.norm(Y, 2)), 1e-300)
     Ynu = Y + nu * Om
@@ -61,19 +70,63 @@ def nystrom(G: np.ndarray, k: int | None = None, power: int = POWER, seed: int =
     return np.ascontiguousarray(V[:, :r]), lam[:r].copy()
 
 
-def gram_lowrank(G: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`nystrom` of G, computed once per array object (the luminance and chroma solves and every reweighting
-    step share one merged Gram); the entry is dropped with the array."""
+def nystrom(G: np.ndarray, k: int | None = None, power: int = POWER, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(V (N, r), lam (r,)): ``V diag(lam) V^T`` a rank-r (r <= k) Nystrom approximation of the symmetric PSD G
+    (N, N) from below, V orthonormal, lam >= 0 descending; k None: :func:`rank`. Cost ~2 (power + 1) N^2 (k + OVERSAMPLE) flops."""
+    k = rank(G.shape[0]) if k is None else k
+    return from_sketch(*sketch(G, k, power, seed), k)
+
+
+def _store(G: np.ndarray, k: int | None, out: tuple, sk: tuple) -> None:
     key = id(G)
-    with _lock:
-        hit = _cache.get(key)
-        if hit is not None and hit[0]() is G and hit[1] == k:
-            return hit[2]
-    out = nystrom(G, k)
     with _lock:
         try:
             ref = weakref.ref(G, lambda _r, key=key: _cache.pop(key, None))
         except TypeError:  # not weak-referenceable: no caching
-            return out
-        _cache[key] = (ref, k, out)
+            return
+        _cache[key] = (ref, k, out, sk)
+
+
+def _cached(G: np.ndarray, k: int | None):
+    with _lock:
+        hit = _cache.get(id(G))
+        return hit if hit is not None and hit[0]() is G and hit[1] == k else None
+
+
+def gram_lowrank(G: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`nystrom` of G, computed once per array object (the luminance and chroma solves and every reweighting
+    step share one merged Gram); the entry is dropped with the array."""
+    hit = _cached(G, k)
+    if hit is not None:
+        return hit[2]
+    with _compute:
+        hit = _cached(G, k)  # (made by another thread meanwhile)
+        if hit is not None:
+            return hit[2]
+        kk = rank(G.shape[0]) if k is None else k
+        sk = sketch(G, kk)
+        out = from_sketch(*sk, kk)
+        _store(G, k, out, sk)
     return out
+
+
+def lowrank_update(G_new: np.ndarray, G: np.ndarray, U: np.ndarray, w: np.ndarray) -> bool:
+    """Cache the pairs of ``G_new = G - U diag(w) U^T`` (U (N, r), a few rows of A dropped or down-weighted:
+    objcam.solvers.plan.known.downdated) for :func:`gram_lowrank`, from G's cached sketch: the same test matrix
+    O with ``G_new O = G O - U (w (U^T O))`` (N r m flops instead of a new range finder's 2 (q + 1) N^2 m).
+    The Nystrom form is a lower bound of G_new for any orthonormal O; O follows G's dominant subspace, which r
+    rows barely move. False (nothing cached) when G has no cached sketch."""
+    for k in {None, rank(G.shape[0])}:
+        hit = _cached(G, k)
+        if hit is None or hit[3] is None:
+            continue
+        Om, Y = hit[3]
+        Y_new = Y - U @ (np.asarray(w, dtype=np.float64)[:, None] * (U.T @ Om))
+        kk = rank(G.shape[0]) if k is None else k
+        try:
+            out = from_sketch(Om, Y_new, kk)
+        except np.linalg.LinAlgError:  # (G_new not numerically PSD on O: left to a fresh range finder)
+            return False
+        _store(G_new, k, out, (Om, Y_new))
+        return True
+    return False

@@ -34,9 +34,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.linalg import lapack
 
-from objcam.solvers import blockchol
+from objcam.solvers import blockchol, nogil
 from objcam.solvers.blockchol import Factor as _Factor, free_block as _free_block, free_groups as _free_groups
 from objcam.solvers import multilevel
 from objcam.solvers.products import sym_dot
@@ -184,13 +183,11 @@ class _SchurFree:
         self.have = np.zeros(Q.shape[0], dtype=bool)
 
     def _w(self, Z: np.ndarray) -> np.ndarray:
-        from scipy.linalg import solve_triangular
-
         new = Z[~self.have[Z]]
         if new.size:
             E = np.zeros((self.Q.shape[0], new.size))
             E[new, np.arange(new.size)] = 1.0
-            self.W[:, new] = solve_triangular(self.fac.c, E, trans="T", lower=False, check_finite=False)
+            self.W[:, new] = nogil.trtrs(self.fac.c, E, trans=True)
             self.have[new] = True
         return self.W[:, Z]
 
@@ -198,12 +195,10 @@ class _SchurFree:
         """Q^-1 (r + E_Z mu) for the columns of X0 = Q^-1 r, with mu making x_Z = 0."""
         if Z.size == 0:
             return X0.copy()
-        from scipy.linalg import cho_factor, cho_solve, solve_triangular
-
         Wz = self._w(Z)
         S = Wz.T @ Wz
-        mu = -cho_solve(cho_factor(S, check_finite=False), X0[Z], check_finite=False)
-        X = X0 + solve_triangular(self.fac.c, Wz @ mu, lower=False, check_finite=False)
+        mu = -nogil.cho_solve(nogil.cho_factor(S), X0[Z])
+        X = X0 + nogil.trtrs(self.fac.c, Wz @ mu)
         X[Z] = 0.0
         return X
 

@@ -23,9 +23,10 @@ import scipy.sparse as sp
 
 from objcam import solvers
 from objcam.envmap import EnvGrid
-from objcam.solvers.basis import merge_gram, restrict_weak, solved_edges, texel_basis
+from objcam.solvers.basis import MERGE_BLOCK_BYTES, merge_gram, restrict_weak, solved_edges, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import EdgeResult, solve_edges
+from objcam.solvers.lowrank import lowrank_update
 from objcam.solvers.outliers import outlier_rows
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
@@ -248,10 +249,13 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
         rhs = [np.asarray(basis.T @ B) for B in rhs]
     del grams_all, G_ref, G
 
-    def one(job: tuple) -> EdgeResult:  # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from)
-        w, steps, (g, b, y2), start, warm = job + (None,) * (5 - len(job))
+    def one(job: tuple) -> EdgeResult:
+        # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from, whether a later run will
+        # continue or warm from this one: it then keeps its Q buffers for that run)
+        w, steps, (g, b, y2), start, warm, keep = job + (None,) * (6 - len(job))
         return solve_edges(g, b, chans, y2, D, w, lr_abs, steps=steps, eps_rel=eps, tone=params.edge_tone,
-                           tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm)
+                           tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm,
+                           keep_buffers=bool(keep))
 
     # independent solves (luminance and chroma): a thread each (the caller holds one BLAS thread)
     if params.outliers == "keep":
@@ -326,7 +330,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         moved[np.flatnonzero(use)[sel]] = True
         return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans, merged_on), d)
 
-    runs = parallel_map(one, [(w, k0, data) for w in weights])
+    runs = parallel_map(one, [(w, k0, data, None, None, True) for w in weights])
     rows, drop, rec = outliers(runs)
     if not rows.any():
         rec["rounds"] = 1
@@ -340,6 +344,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         # stands and the solve continues without it
         rec["rounds"] = 1
     else:
+        # (they keep no buffers: held through the second downdate they would add to the stage's peak memory)
         runs = parallel_map(one, [(w, k0, now, None, r) for w, r in zip(weights, runs)])
         rows, drop, rec = outliers(runs)
         rec.update(rounds=2, first_round_pixels=first)
@@ -361,8 +366,18 @@ def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: lis
         Ao = np.asarray(tr.A[c][rows], np.float32)
         if P is not None:
             Ao = np.asarray((P.T @ Ao.T).T, np.float32)
-        grams[c] = grams[c] - (Ao.T @ (drop[:, None].astype(np.float32) * Ao)).astype(np.float64)
-        rhs[c] = rhs[c] - Ao.T.astype(np.float64) @ (drop[:, None] * Yo[:, chans[c]])
+        Aw = drop[:, None].astype(np.float32) * Ao
+        G, out = grams[c], np.empty(grams[c].shape)
+        # by blocks of rows: the one new N x N array and small temporaries (the whole float32 product and its
+        # float64 copy were two more N x N arrays, each a fresh mapping whose pages fault in)
+        step = max(1, MERGE_BLOCK_BYTES // (8 * max(G.shape[1], 1)))
+        for r0 in range(0, G.shape[0], step):
+            np.subtract(G[r0:r0 + step], Ao[:, r0:r0 + step].T @ Aw, out=out[r0:r0 + step])
+        grams[c] = out
+        U = Ao.T.astype(np.float64)
+        # the PCG preconditioner's low-rank bound of the new Gram from the old one's sketch (objcam.solvers.lowrank)
+        lowrank_update(out, G, U, drop)
+        rhs[c] = rhs[c] - U @ (drop[:, None] * Yo[:, chans[c]])
     return grams, rhs, yy - np.einsum("i,ij,ij->j", drop, Yo, Yo)
 
 
