@@ -57,9 +57,9 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
             X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
                                                                         weak, sigma_abs)
             if params.sources != "off":  # issue 22: a bright blob the data cannot place, as a point source
-                X, edge_info["sources"] = known_sources(tr, grid, use if rejected is None else use & ~rejected, y, X,
-                                                        lambda y2: solve_known_edges(tr, grid, use, y2, ls, params.lr,
-                                                                                     params, weak, sigma_abs)[0])
+                fit = use if rejected is None else use & ~rejected  # (the resolve: on the pixels the solve kept)
+                X, edge_info["sources"] = known_sources(tr, grid, fit, y, X, lambda y2: solve_known_edges(
+                    tr, grid, fit, y2, ls, params.lr, params, weak, sigma_abs)[0])
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
