@@ -95,7 +95,7 @@ class SolveParams(BaseModel):
     sources: Literal["off", "compact"] = Field(
         "off", description="known albedo, prior=edges: 'compact': after the solve, each bright blob (texels above "
         "10 x the map's median) whose energy one or two of its texels explain to within the fit's own chi-squared "
-        "spread is collapsed to them and the rest of the map solved again without it (objcam.solvers.sources: the "
+        "spread is collapsed to them, the blob's other texels set to the sky around it (objcam.solvers.sources: the "
         "edge prior spreads a small lamp the data cannot place); 'off': the map as solved")
     outlier_threshold: float = Field(OUTLIER_K, gt=0, description="outliers=reject: the residual, in units of "
                                      "max(noise, robust spread), beyond which a pixel is dropped (6: a normal value "
