@@ -47,8 +47,7 @@ def bright_blobs(lum: np.ndarray, grid: EnvGrid, texel_index: np.ndarray, factor
                  ) -> list[np.ndarray]:
     """Connected bright texels of ``lum`` (N,) (luminance at A's texels ``texel_index``, flat indices into the
     lat-long ``grid``): texels above ``factor`` x the median of the positive ones, 8-connected with the azimuth
-    wrapping. Returns the blobs as arrays of positions into the N texels, largest energy first is left to the
-    caller."""
+    wrapping. Returns the blobs as arrays of positions into the N texels, in label order."""
     pos = lum[lum > 0]
     if pos.size == 0:
         return []
@@ -120,7 +119,8 @@ def _fit(cols: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray, grid: EnvGrid,
-                    texel_index: np.ndarray, factor: float = BRIGHT_FACTOR, max_blobs: int = MAX_BLOBS) -> SourcesResult:
+                    texel_index: np.ndarray, factor: float = BRIGHT_FACTOR,
+                    max_blobs: int = MAX_BLOBS) -> SourcesResult:
     """The step of the module docstring. A (C, M, N) the transport (C = 1: grey, or 3), ``use`` (M,) bool the
     fitted rows, y (M, 3) the target at A's rows, x (N, 3) the solve's map at A's texels ``texel_index`` in
     ``grid``. Returns the map and the record (blobs found, collapsed, the misfit's change against its
