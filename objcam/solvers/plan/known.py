@@ -57,6 +57,8 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
             sigma_abs = noise_per_value(target, d) if params.outliers != "keep" else None
             X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
                                                                         weak, sigma_abs)
+            if params.sources != "off":  # issue 22: a bright blob the data cannot place, as a point source
+                X, edge_info["sources"] = known_sources(tr, grid, use if rejected is None else use & ~rejected, y, X)
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -69,6 +71,15 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
                          edge_info, auto_info, weak)
     sol.rejected = rejected
     return sol
+
+
+def known_sources(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarray) -> tuple:
+    """params.sources=compact (objcam.solvers.sources) on the pixels ``use`` the solve fitted: (X (N, 3), its
+    record for solve.json's edges)."""
+    from objcam.solvers.sources import compact_sources
+
+    got = compact_sources(tr.A, use, y, X, grid, tr.texel_index)
+    return got.x, got.info
 
 
 def noise_per_value(target, d: TargetData) -> float | None:

@@ -92,6 +92,11 @@ class SolveParams(BaseModel):
         "and the solve continues on the rest (fireflies, hot pixels, glints, geometry the model lacks: "
         "objcam.solvers.outliers; nothing is done past a tenth of the pixels); 'keep': plain least squares. "
         "Measured on the hard-case suite and the core bench (bench/results.md, issue 22)")
+    sources: Literal["off", "compact"] = Field(
+        "off", description="known albedo, prior=edges: 'compact': after the solve, each bright blob (texels above "
+        "10 x the map's median) whose energy one or two of its texels explain to within the fit's own chi-squared "
+        "spread is collapsed to them, the blob's other texels set to the sky around it (objcam.solvers.sources: the "
+        "edge prior spreads a small lamp the data cannot place); 'off': the map as solved")
     outlier_threshold: float = Field(OUTLIER_K, gt=0, description="outliers=reject: the residual, in units of "
                                      "max(noise, robust spread), beyond which a pixel is dropped (6: a normal value "
                                      "exceeds it once in 5e8)")

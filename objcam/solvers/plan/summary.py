@@ -38,6 +38,7 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
                + (f", {n_mixed} silhouette pixels left out" if n_mixed else "")
                + (f", support light redone {n_refit}x from the estimated albedo" if n_refit else "")
                + (f", final step: {n_final} round(s) of the albedo's TV step and the envmaps at it" if n_final else "")
+               + sources_phrase(per_target)
                + f", {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
                + ", ".join(f"{k}: image residual {v['relative_image_residual']:.3f}"
                            + (f", {v['verdict']['grade']}" if v.get("verdict") else "") for k, v in per_target.items()))
@@ -48,3 +49,13 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
     if joint:
         metrics["scale_ambiguous"] = ambiguous
     return summary, metrics
+
+
+def sources_phrase(per_target: dict[str, dict]) -> str:
+    """solve.sources=compact (objcam.solvers.sources): ", N bright blob(s) collapsed to point sources" or ""."""
+    rec = [(v.get("edges") or {}).get("sources") for v in per_target.values()]
+    rec = [r for r in rec if r]
+    if not rec:
+        return ""
+    n, found = sum(r["collapsed"] for r in rec), sum(r["blobs_found"] for r in rec)
+    return f", {n} of {found} bright blob(s) collapsed to point sources (the data could not tell them apart)"
