@@ -186,7 +186,7 @@ def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
     (the stage's rule does not build them either). Returns a record shaped like the stage's."""
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.transport import load_transport
-    from objcam.transport.resolution import Z, pooled_target, target_fit, walk
+    from objcam.transport.resolution import Z, blind_transport, pooled_target, target_fit, walk
 
     t0, c0 = time.perf_counter(), time.process_time()
     art = SceneArtifact.load(next(iter(works.values())) / "scene")
@@ -194,15 +194,18 @@ def auto_from_fixed(cap: Path, works: dict[int, Path], hdris) -> dict:
     out = {}
     for h in hdris:
         t = targets[h]
-        fits, sigma_abs, rel = {}, None, None
+        fits, blind, sigma_abs, rel, coarser = {}, {}, None, None, None
         for height, work in sorted(works.items()):
             tr = load_transport(work / "transport", h)
             img, ok, rel, sigma_abs = pooled_target(t, art.folder, tr)
             fits[height] = target_fit(tr, img, ok, rel)
-            del tr
-            if walk(fits, sigma_abs)[0] < height:  # the walk stopped below: finer fits cannot change the choice
+            if coarser is not None:  # the step's baseline: this grid blind inside the coarser texels
+                blind[height] = target_fit(blind_transport(coarser, tr), img, ok, rel)
+            coarser = tr
+            if walk(fits, sigma_abs, blind=blind)[0] < height:  # the walk stopped below: finer fits cannot change
                 break
-        chosen, steps = walk(fits, sigma_abs)
+        del coarser, tr
+        chosen, steps = walk(fits, sigma_abs, blind=blind)
         out[h] = {"height": chosen, "noise_rel": rel, "steps": steps}
     return {"record": {"height": max(v["height"] for v in out.values()), "targets": out, "z": Z, "refused": {},
                        "from": "fixed-height transports"},

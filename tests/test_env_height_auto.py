@@ -14,7 +14,7 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.transport import budget
 from objcam.transport.auto import absolute_noise
-from objcam.transport.resolution import affordable, compare, target_fit, walk
+from objcam.transport.resolution import affordable, blind_transport, compare, target_fit, walk
 from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
 
 HEIGHTS = (8, 16)
@@ -36,8 +36,11 @@ def _photo(tr, truth, noise: float, seed: int = 0):
     return img, np.ones(img.shape[:2], bool), s
 
 
-def _choose(trs, img, valid, sigma_abs, noise, **kw):
-    return walk({h: target_fit(trs[h], img, valid, noise) for h in HEIGHTS}, sigma_abs, **kw)
+def _choose(trs, img, valid, sigma_abs, noise, against="blind", **kw):
+    """The rule's walk over HEIGHTS; ``against="coarse"``: the broken baseline (the coarser grid's own fit)."""
+    fits = {h: target_fit(trs[h], img, valid, noise) for h in HEIGHTS}
+    blind = {16: target_fit(blind_transport(trs[8], trs[16]), img, valid, noise)} if against == "blind" else None
+    return walk(fits, sigma_abs, blind=blind, **kw)
 
 
 def _blind(tr_coarse, tr_fine):
@@ -85,6 +88,26 @@ def test_a_transport_blind_inside_a_coarse_texel_picks_the_coarse_height(toys):
     # broken rule: the threshold's margin dropped (z = -10: a finer grid taken whenever it is not clearly worse)
     broken, _ = _choose(blind, img, valid, s, 1e-2, z=-10.0)
     assert broken == 16
+
+
+@pytest.mark.parametrize("noise", [3e-3, 1e-2, 3e-2])
+def test_a_coarse_sky_through_a_transport_blind_inside_the_coarse_texels_keeps_the_coarse_height(toys, noise,
+                                                                                                  monkeypatch):
+    """The step's baseline is the finer grid fitted blind inside the coarse texels: on a transport that holds
+    nothing finer the two fits are one, so the gain is 0 and the coarse height is kept at every noise. Broken
+    rule: the coarse fit as the baseline with the finer grid's prior divided by k (every coarse map priced the same
+    on both grids: bench/results.md, issue 26 session 20) takes the finer grid, its weaker prior on the coarse
+    structure counted as detail."""
+    import objcam.solvers.plan.rules as rules
+
+    trs, _ = toys
+    blind = {8: trs[8], 16: _blind(trs[8], trs[16])}
+    img, valid, s = _photo(trs[8], sky_with_sun(EnvGrid(8), trs[8].texel_index, 30.0), noise)
+    chosen, steps = _choose(blind, img, valid, s, noise)
+    assert chosen == 8 and abs(steps[0]["gain"]) < 1e-3 and steps[0]["against"] == "blind", steps
+    monkeypatch.setattr(rules, "height_factor", lambda h: (h / 32) ** 3)  # fit_level reads it at each call
+    broken, bsteps = _choose(blind, img, valid, s, noise, against="coarse")
+    assert broken == 16 and bsteps[0]["gain"] > 2 * bsteps[0]["threshold"], bsteps
 
 
 def _plan(targets: int = 1):
