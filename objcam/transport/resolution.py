@@ -28,8 +28,8 @@ What it does not see: model error the finer grid *can* fit (an interreflection t
 as detail; and it tests linear fits, while the default solve is the edge prior with x >= 0.
 The quadratic prior times height_factor is the same prior at every height only for smooth light: its cost of an
 edge grows ~H and of a sub-texel source ~H^4 (bench/results.md, "Issue 26, session 20: why the coarse-to-fine test
-rejects 128 x 256 on city"), so on a scene with a sun the finer fit is biased and the test can keep the coarse grid
-where the edge-prior solve gains (city at 0.1%: 32 kept, 128 x 256 scores 0.031 higher).
+rejects 128 x 256 on city"). That is why each step's baseline is the blind fit on the finer grid (same prior on
+both sides) rather than the coarse fit, which kept city at 0.1% on 32 rows where 128 x 256 scores 0.031 higher.
 """
 
 from __future__ import annotations
