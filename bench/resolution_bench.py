@@ -98,6 +98,10 @@ def clean_renders(out: Path, hdris, spp: int) -> Path:
     from objcam.synth.capture import SynthParams, synthesize
 
     dest = out / f"renders-{spp}"
+    index = dest / "truth" / "truth.json"
+    have = json.loads(index.read_text())["targets"] if index.is_file() else {}
+    if all(h in have and (dest / have[h]["clean_image"]).is_file() for h in hdris):
+        return dest  # every HDRI's clean render is here (its synth folder may be gone)
     (dest / "targets").mkdir(parents=True, exist_ok=True)
     (dest / "truth").mkdir(exist_ok=True)
     metas = {}

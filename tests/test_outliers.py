@@ -112,3 +112,50 @@ def test_the_verdict_counts_the_fitted_pixels_only(toy):
     many[: int(0.05 * len(y))] = True  # 5% dropped: the user is told
     v5 = assess(target, d, TargetSolution(env, None, pred, {}, rejected=many), lr_rel=1e-4)
     assert v5["grade"] != "green" and any("dropped as outliers" in r for r in v5["reasons"])
+
+
+def test_the_chroma_run_follows_the_lead_on_its_own_thread(toy, monkeypatch):
+    """The luminance run decides the outlier sets, the chroma run takes them when ready on the other thread
+    (objcam.solvers.plan.known._robust_runs): the same envmap, bit for bit, as the runs one after the other."""
+    from objcam.solvers.plan import known
+
+    tr, grid, photo, bad, hot, sigma_abs = toy
+    for mode in ("reject", "huber"):
+        X_par, info_par, rej_par = _solve(tr, grid, bad, sigma_abs, mode)
+        with monkeypatch.context() as m:
+            m.setattr(known, "parallel_map", lambda fn, items, workers=None: [fn(i) for i in items])
+            X_ser, info_ser, rej_ser = _solve(tr, grid, bad, sigma_abs, mode)
+        assert "chroma" in info_par and info_par["outliers"] == info_ser["outliers"]
+        assert np.array_equal(X_par, X_ser) and np.array_equal(rej_par, rej_ser)
+
+
+def test_a_failing_lead_run_fails_the_others_instead_of_hanging(toy):
+    import threading
+    import time
+
+    from objcam.solvers.plan.known import _robust_runs
+
+    tr, grid, photo, _, _, sigma_abs = toy
+    calls = []
+
+    def one(job):
+        calls.append(job[0])
+        if job[0] == "lead":
+            time.sleep(0.5)  # the chroma run is waiting for the lead's outlier set by then
+            raise FloatingPointError("the lead's solve failed")
+        return SimpleNamespace(x=np.zeros((tr.A.shape[2], 3)), steps=2)
+
+    got = {}
+
+    def run():
+        try:
+            _robust_runs(one, ["lead", "chroma"], tr, np.ones(len(photo), bool), photo, [[0, 1, 2]], sigma_abs,
+                         SolveParams(), (None, None, None))
+        except FloatingPointError as e:
+            got["error"] = str(e)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(30)
+    assert not t.is_alive() and got.get("error") == "the lead's solve failed", (got, calls)
+    assert set(calls) == {"lead", "chroma"}, calls

@@ -26,14 +26,15 @@ from objcam.envmap import EnvGrid
 from objcam.solvers.basis import MERGE_BLOCK_BYTES, merge_gram, restrict_weak, solved_edges, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import EdgeResult, solve_edges
-from objcam.solvers.lowrank import lowrank_update
+from objcam.solvers.nnls import PCG_MIN_UNKNOWNS
+from objcam.solvers.lowrank import gram_lowrank, lowrank_update
 from objcam.solvers.outliers import outlier_rows
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_noise, noise_ls, texel_group, weak_texels
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
-from objcam.threads import parallel_map, single_blas_thread
+from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
 
 def solve_known(scene, data: dict[str, TargetData], params: SolveParams,
@@ -258,6 +259,12 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     if merged:  # once for both solves (each merged its own copy: 2 x 2.1 GB at 128 x 256)
         grams = [merge_gram(basis, G) for G in grams]
         rhs = [np.asarray(basis.T @ B) for B in rhs]
+        if grams[0].shape[0] >= PCG_MIN_UNKNOWNS:
+            # the PCG preconditioner's low-rank bound, once per Gram (objcam.solvers.lowrank): here on both
+            # cores, where inside the solves one thread computes it while the other waits for it
+            with blas_threads():
+                for G in grams:
+                    gram_lowrank(G)
     del grams_all, G_ref, G
 
     def one(job: tuple) -> EdgeResult:
@@ -310,20 +317,28 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
     """The edge solves with outlier pixels dropped (params.outliers reject) or down-weighted (huber).
 
     1. OUTLIER_AFTER_STEPS edge steps on every pixel; the outliers of that fit (objcam.solvers.outliers) are a
-       first set. None: the steps continue to params.edge_steps, the plain solve.
+       first set. None: the steps continue to params.edge_steps, the plain solve (a run that converged in
+       fewer steps stops there).
     2. When that fit misses its ordinary pixels by more than OUTLIER_CLEAN_SPREAD x the noise (robust spread;
        or the noise is unknown), outliers bent it: a fresh solve without the set (its own quadratic start, so
        outliers do not set the edge prior's scale; warm-started), OUTLIER_AFTER_STEPS steps, and the outliers of
        its fit over every usable pixel: a pixel the contaminated first fit flagged comes back.
     3. The last solve continues on the last set to params.edge_steps.
 
-    ``one((weight, steps, (grams, rhs, yy), start, warm))`` runs solve_edges; ``data`` holds the full grams, rhs
-    and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
-    record)."""
-    k0 = min(OUTLIER_AFTER_STEPS, params.edge_steps)
+    The first weight's run (the luminance) decides the sets from its own fit; the others (the chroma solve)
+    take each set when it is ready and run on the other core meanwhile, so neither waits at a round's end for
+    the other (the downdate of the Gram runs beside the chroma solve).
 
-    def outliers(runs: list) -> tuple[np.ndarray, np.ndarray, dict]:
-        fit = tr.predict_pixels(runs[0].x)[use]  # (float32 products: far below the noise)
+    ``one((weight, steps, (grams, rhs, yy), start, warm, keep))`` runs solve_edges; ``data`` holds the full grams,
+    rhs and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
+    record)."""
+    from concurrent.futures import Future
+
+    k0 = min(OUTLIER_AFTER_STEPS, params.edge_steps)
+    rest = params.edge_steps - k0
+
+    def outliers(run) -> tuple[np.ndarray, np.ndarray, dict]:
+        fit = tr.predict_pixels(run.x)[use]  # (float32 products: far below the noise)
         rows, rec = outlier_rows(Y, fit, sigma_abs, params.outlier_threshold, OUTLIER_MAX_SHARE)
         w = rec.pop("weights")
         return rows, (1.0 - w[rows] if params.outliers == "huber" else np.ones(int(rows.sum()))), rec
@@ -341,29 +356,55 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         moved[np.flatnonzero(use)[sel]] = True
         return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans, merged_on), d)
 
-    runs = parallel_map(one, [(w, k0, data, None, None, True) for w in weights])
-    rows, drop, rec = outliers(runs)
-    if not rows.any():
-        rec["rounds"] = 1
-        if params.edge_steps > k0 and all(r.steps == k0 for r in runs):  # (fewer steps: converged)
-            runs = parallel_map(one, [(w, params.edge_steps - k0, data, r) for w, r in zip(weights, runs)])
-        return runs, None, rec
-    first = int(rows.sum())
-    rejected, (now, d1) = without(rows, drop, data, np.zeros(len(Y)))
-    if sigma_abs and rec["robust_scale"] <= OUTLIER_CLEAN_SPREAD * sigma_abs:
-        # the fit explains its ordinary pixels to a few noise sigmas: the outliers did not bend it, its set
-        # stands and the solve continues without it
-        rec["rounds"] = 1
-    else:
-        # (they keep no buffers: held through the second downdate they would add to the stage's peak memory)
-        runs = parallel_map(one, [(w, k0, now, None, r) for w, r in zip(weights, runs)])
-        rows, drop, rec = outliers(runs)
-        rec.update(rounds=2, first_round_pixels=first)
-        rejected, (now, _) = without(rows, drop, now, d1)
-        rejected = rejected if rows.any() else None
-    if params.edge_steps > k0:
-        runs = parallel_map(one, [(w, params.edge_steps - k0, now, r) for w, r in zip(weights, runs)])
-    return runs, rejected, rec
+    # what the lead run decides, for the others: after the first fit (the data to go on with, whether a second
+    # round follows) and after the second (its data)
+    first_set, second_set = Future(), Future()
+
+    def lead(w) -> tuple:
+        try:
+            r = one((w, k0, data, None, None, True))
+            rows, drop, rec = outliers(r)
+            if not rows.any():
+                rec["rounds"] = 1
+                first_set.set_result((data, False))
+                return (one((w, rest, data, r)) if rest > 0 and r.steps == k0 else r), None, rec
+            first = int(rows.sum())
+            rejected, (now, d1) = without(rows, drop, data, np.zeros(len(Y)))
+            if sigma_abs and rec["robust_scale"] <= OUTLIER_CLEAN_SPREAD * sigma_abs:
+                # the fit explains its ordinary pixels to a few noise sigmas: the outliers did not bend it, its
+                # set stands and the solve continues without it
+                rec["rounds"] = 1
+                first_set.set_result((now, False))
+            else:
+                first_set.set_result((now, True))
+                # (no buffers kept: held through the second downdate they would add to the stage's peak memory)
+                r = one((w, k0, now, None, r))
+                rows, drop, rec = outliers(r)
+                rec.update(rounds=2, first_round_pixels=first)
+                rejected, (now, _) = without(rows, drop, now, d1)
+                rejected = rejected if rows.any() else None
+                second_set.set_result(now)
+            return (one((w, rest, now, r)) if rest > 0 else r), rejected, rec
+        except BaseException as e:  # the others wait on these: they fail with it instead of hanging
+            for f in (first_set, second_set):
+                if not f.done():
+                    f.set_exception(e)
+            raise
+
+    def follow(w):
+        r = one((w, k0, data, None, None, True))
+        now, again = first_set.result()
+        if now is data:  # no outliers: the plain solve
+            return one((w, rest, data, r)) if rest > 0 and r.steps == k0 else r
+        if again:
+            r = one((w, k0, now, None, r))
+            now = second_set.result()
+        return one((w, rest, now, r)) if rest > 0 else r
+
+    # (one core: the lead runs to its end first, so the others never wait)
+    got = parallel_map(lambda job: job[0](job[1]), [(lead, weights[0])] + [(follow, w) for w in weights[1:]])
+    run, rejected, rec = got[0]
+    return [run] + got[1:], rejected, rec
 
 
 def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: list, rhs: list, yy: np.ndarray,
