@@ -1,6 +1,10 @@
 """``make bench BENCH=gi``: the default A (``transport.model=auto``, interreflections included) against
 path-traced columns WITH interreflections, rendered from a scene objcam did not write.
 
+``--capture DIR --target NAME`` measures instead the A already built in an existing capture's ``objcam/transport``
+(a hard-suite capture, whose files bench/hard/scene.py reads the same way: object.ply, targets/NAME.json, the
+albedo), rendering the reference from that target's camera; no A is built and no direct-only row is written.
+
 The core bench measures A only against direct light (max_depth 2) rendered through objcam's own scene builder;
 this block measures what the default model is for: the image a texel lights, all bounces included.
 
@@ -157,8 +161,9 @@ def pooled(img: np.ndarray, f: int, pixel_index: np.ndarray) -> np.ndarray:
 
 
 def reference(cap: Path, texels, height: int, spp: int, max_depth: int, f: int, pixel_index: np.ndarray,
-              cache: Path) -> dict:
-    """Two path-traced renders per texel (seeds 2 j + 1, 2 j + 2), pooled to A's rows; cached in ``cache``."""
+              cache: Path, target: str = "t0") -> dict:
+    """Two path-traced renders per texel (seeds 2 j + 1, 2 j + 2) through the camera of ``target``
+    (targets/<target>.json), pooled to A's rows; cached in ``cache``."""
     import mitsuba as mi
 
     from bench.hard.scene import scene_dict
@@ -172,7 +177,7 @@ def reference(cap: Path, texels, height: int, spp: int, max_depth: int, f: int, 
     import tomllib
 
     toml = tomllib.loads((cap / "capture.toml").read_text())
-    camera = json.loads((cap / "targets" / "t0.json").read_text())
+    camera = json.loads((cap / "targets" / f"{target}.json").read_text())
     albedo = (float(toml["albedo"]["object"]), float(toml["albedo"]["support"]))
     ref_a, ref_b, power, offset = [], [], [], []
     t0 = time.perf_counter()
@@ -214,6 +219,31 @@ def column_errors(A: np.ndarray, cols: np.ndarray, ref: dict) -> tuple[float, li
     return math.sqrt(num / den), per
 
 
+def energy_ratios(A: np.ndarray, cols: np.ndarray, ref: dict) -> list[float]:
+    """Per reference column, the light A's column puts in the image over the reference's: sum_i a_ij / sum_i r_ij
+    (r the mean of the two renders; a texel A dropped counts 0). A: (M, N) grey columns; cols: (n,) as for
+    :func:`column_errors`."""
+    out = []
+    for k, j in enumerate(cols):
+        r = 0.5 * (ref["ref_a"][k] + ref["ref_b"][k])
+        a = float(A[:, j].sum()) if j >= 0 else 0.0
+        out.append(a / max(float(r.sum()), 1e-300))
+    return out
+
+
+def capture_a(cap: Path, target: str) -> tuple[object, dict]:
+    """(the Transport already built for ``target`` in ``cap``/objcam/transport, its provenance as
+    :func:`build_a` gives it): ``--capture``."""
+    from objcam.transport import load_transport
+
+    folder = cap / "objcam" / "transport"
+    if not (folder / "stage.json").is_file():
+        raise SystemExit(f"{folder}: no transport stage (run `objcam run {cap} --until transport` first)")
+    rec = json.loads((folder / "stage.json").read_text())
+    return load_transport(folder, target), {"seconds": rec["wall_seconds"], "cached": True,
+                                            "summary": rec.get("summary", "")}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a 48 x 48 camera, 6 columns at 144 spp (a smoke run)")
@@ -224,6 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=28, help="seed of the columns' draw")
     ap.add_argument("--rows", default=None, help="draw the columns from these envmap rows only (comma-separated, "
                     "e.g. 14,15: the two above the horizon at 32 x 64)")
+    ap.add_argument("--capture", type=Path, default=None, help="measure the A already built in this capture's "
+                    "objcam/transport (e.g. a hard-suite capture) instead of the core bench's synth capture")
+    ap.add_argument("--target", default=None, help="with --capture: the target whose camera and A are measured "
+                    "(default: the capture's first)")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--write", action="store_true", help="write the block of bench/results.md")
     a = ap.parse_args(argv)
@@ -234,36 +268,57 @@ def main(argv: list[str] | None = None) -> int:
     n_cols = a.columns or (6 if a.quick else 24)
     spp = a.spp or (144 if a.quick else 1024)  # squares: the multijitter sampler's
     a.out.mkdir(parents=True, exist_ok=True)
-    cap = make_capture(a.out, size, 64)
+    if a.capture is not None:
+        import tomllib
+
+        cap = a.capture
+        target = a.target or tomllib.loads((cap / "capture.toml").read_text())["targets"][0]["name"]
+        models = [(f"the capture's A ({cap.name}, {target})", None)]
+        tag = f"{cap.name}-{target}"
+    else:
+        cap, target, models, tag = make_capture(a.out, size, 64), "t0", MODELS, f"{size}px"
     rows, ref = [], None
-    for label, sets in MODELS:
-        work = a.out / f"work-{size}px-{label.split()[0]}"
+    for label, sets in models:
         t = time.perf_counter()
-        tr, prov = build_a(cap, work, sets)
+        if sets is None:
+            tr, prov = capture_a(cap, target)
+        else:
+            tr, prov = build_a(cap, a.out / f"work-{size}px-{label.split()[0]}", sets)
         log(f"{label}: A {'from the cache' if prov['cached'] else f'built in {time.perf_counter() - t:.0f} s'}")
         if tr.env_height != 32 and ref is None:
             log(f"  envmap height {tr.env_height}")
         if ref is None:
             texels = choose_texels(tr.env_height, n_cols, a.seed,
                                    [int(r) for r in a.rows.split(",")] if a.rows else None)
-            cache = a.out / (f"reference-{size}px-{n_cols}cols-{spp}spp-d{a.max_depth}-s{a.seed}"
+            cache = a.out / (f"reference-{tag}-{n_cols}cols-{spp}spp-d{a.max_depth}-s{a.seed}"
                              + (f"-rows{a.rows.replace(',', '_')}" if a.rows else "") + ".npz")
             log(f"reference: {len(texels)} columns x 2 renders at {spp} spp, max_depth {a.max_depth}")
-            ref = reference(cap, texels, tr.env_height, spp, a.max_depth, tr.downsample, tr.pixel_index, cache)
+            ref = reference(cap, texels, tr.env_height, spp, a.max_depth, tr.downsample, tr.pixel_index, cache,
+                            target)
         flat = [r * 2 * tr.env_height + c for r, c in ref["texels"].tolist()]
         pos = {int(t): i for i, t in enumerate(tr.texel_index)}
         cols = np.array([pos.get(t, -1) for t in flat])  # a texel A dropped (below the horizon): a zero column
         A = np.asarray(tr.A.mean(axis=0) if tr.A.shape[0] > 1 else tr.A[0], np.float64)
         err, per = column_errors(A, cols, ref)
-        rows.append({"model": label, "sets": sets, "column_error": err, "per_column": per, **prov})
-        log(f"  column error {100 * err:.2f}%")
-    res = {"size": size, "columns": n_cols, "spp": spp, "max_depth": a.max_depth, "seed": a.seed,
+        energy = energy_ratios(A, cols, ref)
+        rows.append({"model": label, "sets": sets, "column_error": err, "per_column": per, "energy_ratio": energy,
+                     **prov})
+        log(f"  column error {100 * err:.2f}%; energy A / reference per column: "
+            + " ".join(f"{e:.3f}" for e in energy))
+    res = {"size": tr.camera.width if a.capture else size, "columns": n_cols, "spp": spp, "max_depth": a.max_depth,
+           "seed": a.seed, **({"capture": str(cap), "target": target} if a.capture else {}),
            "texels": ref["texels"].tolist(), "power_error": ref["power_error"].tolist(),
            "direction_offset_deg": ref["direction_offset_deg"].tolist(), "reference_seconds": float(ref["seconds"]),
            "load": os.getloadavg()[0], "rows": rows}
+    raw = a.out / f"gi-{tag}-{n_cols}cols-{spp}spp-d{a.max_depth}-s{a.seed}.json"
+    if a.capture is not None:  # the raw rows beside the reference's cache
+        res["raw"] = str(raw)
+        raw.write_text(json.dumps(res, indent=1))
     md = markdown(res, argv)
     print(md)
-    if a.write:
+    if a.write and a.capture is not None:
+        log("--write writes the core bench's block: not with --capture (its rows are the gi-*.json in --out)")
+    elif a.write:
         Path("bench/gi_rows.json").write_text(json.dumps(res, indent=1) + "\n")
         write_section("gi", md, TITLE)
     return 0
@@ -275,15 +330,17 @@ def markdown(res: dict, argv) -> str:
          f"2 x {res['spp']} spp per column at max_depth {res['max_depth']} ({res['reference_seconds']:.0f} s). "
          f"The one-hot texels as Mitsuba emits them: power within "
          f"{100 * max(abs(p) for p in res['power_error']):.2f}% of the box's solid angle, centre within "
-         f"{max(res['direction_offset_deg']):.2f} deg. Raw rows: bench/gi_rows.json.", "",
-         "| A | column error (GI reference) | target <= 1.5% | A time (s) | median / max column error | transport |",
-         "|---|---:|---|---:|---:|---|"]
+         f"{max(res['direction_offset_deg']):.2f} deg. Raw rows: {res.get('raw', 'bench/gi_rows.json')}.", "",
+         "| A | column error (GI reference) | target <= 1.5% | A time (s) | median / max column error | "
+         "energy A / reference: median (min-max) | transport |",
+         "|---|---:|---|---:|---:|---:|---|"]
     for r in res["rows"]:
         met = "met" if r["column_error"] <= TARGET else "missed" if r["model"].startswith("auto") else ""
         when = f"{r['seconds']:.1f}" + (" (cached: an earlier run's)" if r["cached"] else "")
+        e = r["energy_ratio"]
         L.append(f"| {r['model']} | {100 * r['column_error']:.2f}% | {met} | {when} | "
                  f"{100 * float(np.median(r['per_column'])):.2f}% / {100 * max(r['per_column']):.2f}% | "
-                 f"{r['summary'][:120]} |")
+                 f"{float(np.median(e)):.3f} ({min(e):.3f}-{max(e):.3f}) | {r['summary'][:120]} |")
     return "\n".join(L)
 
 
