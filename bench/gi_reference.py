@@ -58,7 +58,8 @@ def log(msg: str) -> None:
 
 def box_bitmap(height: int, row: int, col: int, f: int = 8) -> np.ndarray:
     """(f H + 1, 2 f H, 3) float32: the contract's texel (row, col) of an H x 2H lat-long map lit at radiance 1,
-    as a bitmap for bench/hard/scene.py (which hands Mitsuba the columns reversed).
+    as a bitmap for bench/hard/scene.py (which hands Mitsuba the columns reversed): bench.hard.scene.contract_bitmap
+    of the one-hot map.
 
     Mitsuba's envmap interpolates bilinearly between bitmap samples that sit at polar angle pi i / (rows - 1) and
     at the column centres. With f H + 1 rows, row i samples theta = pi i / (f H): the texel's boundary rows
@@ -66,18 +67,11 @@ def box_bitmap(height: int, row: int, col: int, f: int = 8) -> np.ndarray:
     over 1/f of a texel row symmetrically about each boundary; columns f col .. f col + f - 1 get 1, so the ramp
     in azimuth is symmetric about the boundary too. The emitted power is the box texel's up to the ramps' second
     order (measured by :func:`emitted_power`)."""
-    h, w = height, 2 * height
-    rows = np.zeros(f * h + 1)
-    rows[f * row: f * (row + 1) + 1] = 1.0
-    rows[f * row] = rows[f * (row + 1)] = 0.5
-    if row == 0:
-        rows[0] = 1.0  # the zenith row is one point: the texel owns it
-    if row == h - 1:
-        rows[-1] = 1.0
-    cols = np.zeros(f * w)
-    cols[f * col: f * (col + 1)] = 1.0
-    img = rows[:, None] * cols[None, :]
-    return np.repeat(img[..., None], 3, axis=2).astype(np.float32)
+    from bench.hard.scene import contract_bitmap
+
+    env = np.zeros((height, 2 * height, 3), np.float32)
+    env[row, col] = 1.0
+    return contract_bitmap(env, f)
 
 
 def texel_box(height: int, row: int, col: int) -> tuple[float, np.ndarray]:

@@ -25,7 +25,8 @@ from bench.hard.scene import look_at_camera, render
 
 DISTANCE = 0.4  # metres from the camera to the point it looks at
 AZIMUTH = -90.0  # the camera stands on the -y side
-RENDER_VERSION = "v2"  # part of the render cache's key: bump when bench/hard/scene.py changes what it renders
+RENDER_VERSION = "v3"  # part of the render cache's key: bump when bench/hard/scene.py changes what it renders
+# (v3: the envmap handed to Mitsuba in the contract's box form, bench.hard.scene.contract_bitmap)
 
 
 def log(msg: str) -> None:

@@ -63,8 +63,9 @@ def render_family(mesh: Path, camera: dict, envs: list[tuple[str, np.ndarray]], 
     cached in ``cache`` (None: not cached)."""
     images, mcs = [], []
     for name, env in envs:
-        # "-std": renders since the HDRIs are read in the standard convention (earlier ones saw them mirrored)
-        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp-std"
+        # "-std": renders since the HDRIs are read in the standard convention (earlier ones saw them mirrored);
+        # "-box": since the envmap reaches Mitsuba in the contract's box form (bench.hard.scene.contract_bitmap)
+        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp-std-box"
         path = cache / f"{key}.npz" if cache is not None else None
         if path is not None and path.is_file():
             r = np.load(path)
