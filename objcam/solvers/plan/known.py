@@ -26,8 +26,8 @@ from objcam.envmap import EnvGrid
 from objcam.solvers.basis import MERGE_BLOCK_BYTES, merge_gram, restrict_weak, solved_edges, texel_basis
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import EdgeResult, solve_edges
-from objcam.solvers.nnls import PCG_MIN_UNKNOWNS
 from objcam.solvers.lowrank import gram_lowrank, lowrank_update
+from objcam.solvers.nnls import PCG_MIN_UNKNOWNS
 from objcam.solvers.outliers import outlier_rows
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
@@ -327,7 +327,9 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
 
     The first weight's run (the luminance) decides the sets from its own fit; the others (the chroma solve)
     take each set when it is ready and run on the other core meanwhile, so neither waits at a round's end for
-    the other (the downdate of the Gram runs beside the chroma solve).
+    the other (the downdate of the Gram runs beside the chroma solve). The cost: in a second round the chroma
+    run's Q may be alive during the second downdate, one N' x N' array more at the stage's peak than when the
+    rounds waited for each other.
 
     ``one((weight, steps, (grams, rhs, yy), start, warm, keep))`` runs solve_edges; ``data`` holds the full grams,
     rhs and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
