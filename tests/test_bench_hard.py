@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 
-from bench.hard.design import Case, Geometry
 from bench.hard.lighting import Lighting, add_disc, make_envmap
 from bench.hard.objects import box, write_ply
 from bench.hard.scene import overhead_camera, render
@@ -106,20 +105,12 @@ def test_a_tiny_case_is_a_capture_objcam_runs(tmp_path):
     """The suite's capture writer on one 32 x 32 render at low spp: the scene stage accepts it, evaluate scores both
     noise levels with their baselines, and the lamp is recovered near where it is (an end-to-end orientation
     check through objcam's own solve)."""
-    from bench.hard.__main__ import run_capture
-    from bench.hard.capture import cached_render, camera_for
-    from bench.hard.objects import make_object
+    from tests.hard_capture import tiny_hard_capture
 
-    geo = Geometry("torus", 60.0, 0.8, 0.5)
-    case = Case(Lighting("lamp", "lamp30", 30.0), 0.0, geo)
-    mesh = tmp_path / "torus.ply"
-    write_ply(mesh, *make_object("torus"))
-    camera = camera_for(geo, 32)
-    renders = {case.name: cached_render(case, mesh, camera, tmp_path / "renders", spp=64, max_depth=3)}
-    rows = run_capture(tmp_path / "cap", geo, [case], renders, camera)
-    toml = (tmp_path / "cap" / "capture.toml").read_text()
+    cap, rows = tiny_hard_capture(tmp_path, 60.0)
+    toml = (cap / "capture.toml").read_text()
     assert 'object = "object.ply"' in toml and toml.count("[[targets]]") == 2
-    assert json.loads((tmp_path / "cap" / "targets" / "lamp30_r0_n2.json").read_text())["width"] == 32
+    assert json.loads((cap / "targets" / "lamp30_r0_n2.json").read_text())["width"] == 32
     by = {r["target"]: r for r in rows}
     assert set(by) == {"lamp30_r0_n0.5", "lamp30_r0_n2"}
     for r in rows:

@@ -27,21 +27,10 @@ def test_a_hard_capture_is_measured_through_its_own_camera(tmp_path, capsys):
     above the horizon match the reference's light to a few percent; the same reference against A's columns a
     quarter turn away misses (a test of the measure)."""
     from bench.gi_reference import main
-    from bench.hard.__main__ import run_capture
-    from bench.hard.capture import cached_render, camera_for
-    from bench.hard.design import Case, Geometry
-    from bench.hard.lighting import Lighting
-    from bench.hard.objects import make_object, write_ply
     from objcam.transport import load_transport
+    from tests.hard_capture import tiny_hard_capture
 
-    geo = Geometry("torus", 35.0, 0.8, 0.5)
-    case = Case(Lighting("lamp", "lamp30", 30.0), 0.0, geo)
-    mesh = tmp_path / "torus.ply"
-    write_ply(mesh, *make_object("torus"))
-    camera = camera_for(geo, 32)
-    renders = {case.name: cached_render(case, mesh, camera, tmp_path / "renders", spp=64, max_depth=3)}
-    cap = tmp_path / "cap"
-    run_capture(cap, geo, [case], renders, camera)
+    cap, _ = tiny_hard_capture(tmp_path, 35.0)
     tr = load_transport(cap / "objcam" / "transport", "lamp30_r0_n0.5")
     h = tr.env_height
     out = tmp_path / "gi"
