@@ -4,6 +4,11 @@ difference must stay within the difference between two llvm builds of different 
 noise itself.
 
     python -m bench.variant_bench [--model direct] [--write]      # needs a CUDA device (transport.variant=cuda)
+    python -m bench.variant_bench --cuda-from DIR [--write]       # DIR: bench.variant_device's output from a GPU
+
+The second form is for a GPU machine lent without this project's set-up: bench.variant_device builds there and
+returns A on every 8th texel (by index) of each kept build with its timings; the llvm builds run here, and the
+comparison is on those columns.
 
 Each build runs in its own process (Mitsuba's variant is process-wide). Reports per build the wall and CPU
 seconds, and the relative Frobenius and largest column differences of cuda against llvm (seed 0) and of llvm
@@ -60,6 +65,65 @@ def _diff(a: Path, b: Path) -> tuple[float, float]:
     return float(np.linalg.norm(A - B) / np.linalg.norm(A)), float(col.max())
 
 
+def _diff_columns(a: dict, b: dict) -> tuple[float, float]:
+    """(relative Frobenius difference, largest relative column difference) of b's A against a's, two
+    bench.variant_device column subsets, on the pixels and texels both kept."""
+    _, ia, ib = np.intersect1d(a["texel_index"], b["texel_index"], return_indices=True)
+    _, pa, pb = np.intersect1d(a["pixel_index"], b["pixel_index"], return_indices=True)
+    A = a["A"][:, pa][:, :, ia].astype(np.float64)
+    B = b["A"][:, pb][:, :, ib].astype(np.float64)
+    col = np.sqrt(((A - B) ** 2).sum(axis=(0, 1))) / np.maximum(np.sqrt((A ** 2).sum(axis=(0, 1))), 1e-30)
+    return float(np.linalg.norm(A - B) / np.linalg.norm(A)), float(col.max())
+
+
+def _from_device(cap: Path, folder: Path, argv) -> str:
+    """The variant block from a GPU machine's bench.variant_device output in ``folder`` and llvm builds here."""
+    import shutil
+
+    from bench.sections import invocation
+    from bench.variant_device import build, column_subset
+
+    info = json.loads((folder / "timings.json").read_text())
+    rows = ["| model | llvm seed 1 vs seed 0 (the Monte Carlo tolerance) | cuda seed 0 vs llvm seed 0 | within |",
+            "|---|---|---|---|"]
+    here = []
+    for model in ("direct", "auto"):
+        npz = folder / f"cuda_0_{model}_32.npz"
+        if not npz.is_file():
+            continue
+        subsets = []
+        for seed in (0, 1):
+            out = OUT / f"llvm{seed}_{model}"
+            shutil.rmtree(out, ignore_errors=True)
+            row = build(cap, out, f"llvm:{seed}:{model}:32", 1200)
+            if "error" in row:
+                raise SystemExit(f"llvm build {row['spec']}: {row['error']}")
+            here.append(row)
+            subsets.append(column_subset(out / "cam0"))
+        with np.load(npz) as z:
+            cuda = {k: z[k] for k in z.files}
+        mc, gpu = _diff_columns(subsets[0], subsets[1]), _diff_columns(subsets[0], cuda)
+        ok = "yes" if gpu[0] <= mc[0] and gpu[1] <= mc[1] else "**no**"
+        rows.append(f"| {model} | {mc[0]:.2e} / {mc[1]:.2e} | {gpu[0]:.2e} / {gpu[1]:.2e} | {ok} |")
+    times = ["| build (variant:seed:model:env_height) | machine | wall (s) | CPU (s, all threads) |",
+             "|---|---|---:|---:|"]
+    seen = set()
+    for r in info["builds"]:
+        kind = tuple(r["spec"].split(":")[i] for i in (0, 2))  # variant and model: what a kernel is compiled for
+        cold = " (first: compiles kernels)" if kind not in seen else ""
+        seen.add(kind)
+        if "error" in r:
+            times.append(f"| {r['spec']} | GPU machine | failed: {r['error']} | |")
+        else:
+            times.append(f"| {r['spec']}{cold} | GPU machine | {r['wall']:.1f} | {r['cpu']:.1f} |")
+    for r in here:
+        times.append(f"| {r['spec']} | this machine (2 cores) | {r['wall']:.1f} | {r['cpu']:.1f} |")
+    return (f"{invocation('bench.variant_bench', argv)}: builds on a lent GPU machine ({info['gpu']}, 16 CPU cores) "
+            f"by `python -m bench.variant_device`, compared here on every 8th texel's column (by index, "
+            f"{len(cuda['texel_index'])} columns) of the demo capture's A at 32 x 64\n\n" + "\n".join(rows)
+            + "\n\n" + "\n".join(times))
+
+
 def main(argv: list[str] | None = None) -> None:
     from bench.cluster_bench import _capture
     from bench.sections import invocation, write_section
@@ -67,8 +131,15 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="direct", choices=["direct", "auto"])
     ap.add_argument("--write", action="store_true")
+    ap.add_argument("--cuda-from", type=Path, help="a GPU machine's `python -m bench.variant_device` output folder")
     args = ap.parse_args(argv)
     cap = _capture()
+    if args.cuda_from is not None:
+        body = _from_device(cap, args.cuda_from, argv)
+        print(body)
+        if args.write:
+            write_section("variant", body, "GPU: cuda_ad_rgb against llvm_ad_rgb (issue 25)")
+        return
     ref = _build(cap, "llvm0", "llvm", 0, args.model)
     other = _build(cap, "llvm1", "llvm", 1, args.model)
     cuda = _build(cap, "cuda0", "cuda", 0, args.model)
