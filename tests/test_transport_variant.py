@@ -67,3 +67,27 @@ def test_the_stage_records_its_variant_and_refuses_what_the_machine_lacks(tmp_pa
         with pytest.raises(StageError, match="no CUDA device"):
             stage.run(StageInputs(capture=folder, upstream={"scene": folder}, out=out2),
                       stage.Params(env_height=ENV_H, model="direct", variant="cuda"))
+
+
+def test_variant_bench_compares_columns_on_shared_pixels_and_texels():
+    """bench.variant_bench's comparison of a GPU machine's column subset with a local one: matched by pixel and
+    texel index (the two builds may keep different edge pixels), relative Frobenius and worst column."""
+    import numpy as np
+
+    from bench.variant_bench import _diff_columns
+
+    rng = np.random.default_rng(3)
+    A = rng.random((1, 50, 6)).astype(np.float32)
+    a = {"A": A, "pixel_index": np.arange(50), "texel_index": np.arange(0, 48, 8)}
+    # b: the same columns with its pixels in another order, one pixel fewer and one extra texel
+    order = rng.permutation(49)
+    B = np.concatenate([A[:, order], np.zeros((1, 49, 0), np.float32)], axis=2)
+    B = np.concatenate([B, rng.random((1, 49, 1)).astype(np.float32)], axis=2)
+    b = {"A": B, "pixel_index": order, "texel_index": np.r_[np.arange(0, 48, 8), 99]}
+    assert _diff_columns(a, b) == (0.0, 0.0)
+    B2 = B.copy()
+    B2[:, :, 2] *= 1.1  # one column 10% off
+    rel, worst = _diff_columns(a, {**b, "A": B2})
+    assert worst == pytest.approx(0.1, rel=1e-5)
+    col = np.linalg.norm(A[0, :, 2][order])
+    assert rel == pytest.approx(0.1 * col / np.linalg.norm(A[0][order]), rel=1e-4)
