@@ -184,3 +184,31 @@ def test_the_renderer_emits_the_truths_light():
     truth = float(((env @ np.array([0.2126, 0.7152, 0.0722])) * cos_w[:, None]).sum())
     assert _plane_irradiance_as_emitted(contract_bitmap(env)) / truth == pytest.approx(1.0, abs=0.005)
     assert _plane_irradiance_as_emitted(env.astype(np.float32)) / truth < 0.97  # the rows as they are
+
+
+def test_decompose_says_whether_the_sky_or_the_source_loses_the_ssim():
+    """bench.hard.decompose: a map whose sky is noisy and source exact loses nothing when the sky is fixed; one
+    whose source is lost (a dark hole where it was) and sky exact loses nothing when the source's neighbourhood
+    is fixed."""
+    import numpy as np
+
+    from bench.hard.decompose import source_neighbourhood, split_scores
+
+    h = 16
+    rows = np.linspace(0.05, 0.03, h)[:, None, None] * np.ones((h, 2 * h, 3))
+    truth = rows.copy()
+    truth[h // 2:] = 0.01
+    truth[4, 10] = 500.0  # a lamp
+    mask = np.zeros((h, 2 * h), bool)
+    mask[: h // 2] = True
+    near = source_neighbourhood(truth)
+    assert near[4, 10] and near[2, 12] and not near[4, 13] and near.sum() == 25
+    rng = np.random.default_rng(0)
+    noisy_sky = truth * np.exp(rng.normal(0, 0.5, truth.shape[:2]))[..., None]
+    noisy_sky[near] = truth[near]
+    s = split_scores(noisy_sky, truth, mask)
+    assert s["ssim"] < 0.8 and s["sky_fixed"] == pytest.approx(1.0) and s["sources_fixed"] == pytest.approx(s["ssim"])
+    lost = truth.copy()
+    lost[3:6, 9:12] = 0.0  # a hole where the lamp was
+    s = split_scores(lost, truth, mask)
+    assert s["ssim"] < 0.95 and s["sources_fixed"] == pytest.approx(1.0) and s["sky_fixed"] == pytest.approx(s["ssim"])
