@@ -84,6 +84,16 @@ def client():
         yield c
 
 
+def test_local_workers_run_without_dasks_profiler(client):
+    """connect("local:N") starts its workers without Dask's statistical profiler (its 10 ms stack samples of every
+    thread cost ~2 CPU s of the demo's transport)."""
+    import dask.config
+
+    got = client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
+    assert len(got) == 2 and not any(got.values()), got
+    assert dask.config.get("distributed.worker.profile.enabled")  # the driver's own config is left as it was
+
+
 def die_once(marker: str, fn, *args):
     """Run ``fn(*args)``, but the first call anywhere (a file created exclusively) kills its worker process
     instead: os._exit, no exception, the task is lost with the worker."""

@@ -92,9 +92,14 @@ def connect(spec: str, timeout: float = 60.0):
     cluster = None
     try:
         if cs.kind == "local":
-            # one task at a time per worker; its Dr.Jit kernels use Dr.Jit's own thread pool (objcam.transport.shards)
-            cluster = LocalCluster(n_workers=cs.workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=":0", memory_limit=0 if cs.workers <= cores() else "auto")
+            import dask.config
+
+            # one task at a time per worker; its Dr.Jit kernels use Dr.Jit's own thread pool (objcam.transport.shards).
+            # Without Dask's statistical profiler (it samples every thread's stack every 10 ms, Dr.Jit's too): it
+            # cost ~2 CPU s of the demo's ~19 on the cluster, +23-25% against +11-20% overhead (bench/results.md)
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                cluster = LocalCluster(n_workers=cs.workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=":0", memory_limit=0 if cs.workers <= cores() else "auto")
             client = Client(cluster)
         elif cs.kind == "address":
             try:
