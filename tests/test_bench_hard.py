@@ -212,3 +212,27 @@ def test_decompose_says_whether_the_sky_or_the_source_loses_the_ssim():
     lost[3:6, 9:12] = 0.0  # a hole where the lamp was
     s = split_scores(lost, truth, mask)
     assert s["ssim"] < 0.95 and s["sources_fixed"] == pytest.approx(1.0) and s["sky_fixed"] == pytest.approx(s["ssim"])
+
+
+def test_compare_summarises_families_and_pairs_targets():
+    """bench.hard.compare: per-family medians, row-mean wins, the brightest and band shares, and the paired
+    change on the targets both runs solved."""
+    from bench.hard.compare import family_summary, paired
+
+    def row(target, fam, ssim, rm, bright, bands, noise=0.02):
+        return {"target": target, "geometry": "g", "family": fam, "ssim": ssim, "noise": noise,
+                "baselines": {"row_mean": {"ssim": rm}}, "tonemapped_rmse": 1 - ssim,
+                "brightest_angle_deg": bright, "band_energy": bands}
+
+    base = [row("a", "lamp", 0.6, 0.9, 1.0, [1.0, 1.2, None, 0.9]),
+            row("b", "lamp", 0.8, 0.7, 9.0, [1.0, 2.0, 1.0, 1.0]),
+            row("c", "hdri", 0.7, 0.4, 0.5, [0.7, 1.0, 1.0, 1.4])]
+    s = family_summary(base)
+    assert s["all"]["n"] == 3 and s["all"]["ssim_median"] == pytest.approx(0.7)
+    assert s["lamp"]["beats_row_mean"] == 1 and s["all"]["beats_row_mean"] == 2
+    assert s["lamp"]["brightest_within_texel"] == pytest.approx(0.5)
+    assert s["all"]["bands_in_range"] == pytest.approx(2 / 3)
+    other = [row("a", "lamp", 0.65, 0.9, 1.0, [1.0] * 4), row("b", "lamp", 0.8, 0.7, 1.0, [1.0] * 4),
+             row("d", "lamp", 0.1, 0.9, 1.0, [1.0] * 4)]  # d: not in the base, not paired
+    p = paired(base, other)
+    assert p["n"] == 2 and p["better"] == 1 and p["worse"] == 0 and p["max"] == pytest.approx(0.05)
