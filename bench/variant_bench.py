@@ -19,50 +19,34 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 
 OUT = Path("bench/out/variant")
-_BUILD = """
-import json, sys, time
-from pathlib import Path
-from objcam.pipeline.stage import StageInputs
-from objcam.stages import transport as stage
-cap, out, variant, seed, model = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5]
-out.mkdir(parents=True)
-t0, c0 = time.perf_counter(), time.process_time()
-m = stage.run(StageInputs(capture=cap, upstream={"scene": cap / "objcam" / "scene"}, out=out, quiet=True),
-              stage.Params(variant=variant, seed=seed, model=model)).metrics
-print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0, "variant": m["variant"]}))
-"""
 
 
 def _build(cap: Path, name: str, variant: str, seed: int, model: str) -> dict:
+    """The transport of ``cap`` at 32 x 64 in its own process into OUT/name (bench.variant_device.build); its
+    timings with ``out``, or SystemExit naming the build and its error."""
     import shutil
+
+    from bench.variant_device import build
 
     out = OUT / name
     shutil.rmtree(out, ignore_errors=True)
-    r = subprocess.run([sys.executable, "-c", _BUILD, str(cap), str(out), variant, str(seed), model],
-                       capture_output=True, text=True, env={**__import__("os").environ, "OBJCAM_QUIET": "1"})
-    if r.returncode != 0:
-        raise SystemExit(f"{name}: {r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode}")
-    return json.loads(r.stdout.strip().splitlines()[-1]) | {"out": out}
+    row = build(cap, out, f"{variant}:{seed}:{model}:32", timeout=3600.0)
+    if "error" in row:
+        raise SystemExit(f"{name}: {row['error']}")
+    return row | {"out": out}
 
 
 def _diff(a: Path, b: Path) -> tuple[float, float]:
     """(relative Frobenius difference, largest relative column difference) of A in b against A in a, on the
-    pixels and texels both kept."""
-    from objcam.transport.storage import load_group
+    pixels and texels both kept (seeds move edge pixels)."""
+    from bench.variant_device import column_subset
 
-    ta, tb = load_group(a / "cam0"), load_group(b / "cam0")
-    _, ia, ib = np.intersect1d(ta.texel_index, tb.texel_index, return_indices=True)
-    _, pa, pb = np.intersect1d(ta.pixel_index, tb.pixel_index, return_indices=True)  # seeds move edge pixels
-    A, B = ta.A[:, pa][:, :, ia].astype(np.float64), tb.A[:, pb][:, :, ib].astype(np.float64)
-    col = np.sqrt(((A - B) ** 2).sum(axis=(0, 1))) / np.maximum(np.sqrt((A ** 2).sum(axis=(0, 1))), 1e-30)
-    return float(np.linalg.norm(A - B) / np.linalg.norm(A)), float(col.max())
+    return _diff_columns(column_subset(a / "cam0", stride=1), column_subset(b / "cam0", stride=1))
 
 
 def _diff_columns(a: dict, b: dict) -> tuple[float, float]:
@@ -78,10 +62,8 @@ def _diff_columns(a: dict, b: dict) -> tuple[float, float]:
 
 def _from_device(cap: Path, folder: Path, argv) -> str:
     """The variant block from a GPU machine's bench.variant_device output in ``folder`` and llvm builds here."""
-    import shutil
-
     from bench.sections import invocation
-    from bench.variant_device import build, column_subset
+    from bench.variant_device import column_subset
 
     info = json.loads((folder / "timings.json").read_text())
     rows = ["| model | llvm seed 1 vs seed 0 (the Monte Carlo tolerance) | cuda seed 0 vs llvm seed 0 | within |",
@@ -93,13 +75,9 @@ def _from_device(cap: Path, folder: Path, argv) -> str:
             continue
         subsets = []
         for seed in (0, 1):
-            out = OUT / f"llvm{seed}_{model}"
-            shutil.rmtree(out, ignore_errors=True)
-            row = build(cap, out, f"llvm:{seed}:{model}:32", 1200)
-            if "error" in row:
-                raise SystemExit(f"llvm build {row['spec']}: {row['error']}")
+            row = _build(cap, f"llvm{seed}_{model}", "llvm", seed, model)
             here.append(row)
-            subsets.append(column_subset(out / "cam0"))
+            subsets.append(column_subset(row["out"] / "cam0"))
         with np.load(npz) as z:
             cuda = {k: z[k] for k in z.files}
         mc, gpu = _diff_columns(subsets[0], subsets[1]), _diff_columns(subsets[0], cuda)

@@ -56,13 +56,13 @@ def build(cap: Path, out: Path, spec: str, timeout: float) -> dict:
     return {"spec": spec, "process_wall": time.perf_counter() - t0} | json.loads(r.stdout.strip().splitlines()[-1])
 
 
-def column_subset(group: Path) -> dict[str, np.ndarray]:
-    """A (channels x pixels x kept texels, float32) on the texels whose index is a multiple of COLUMN_STRIDE, with
-    ``texel_index`` (those texels) and ``pixel_index`` (all of A's pixels)."""
+def column_subset(group: Path, stride: int = COLUMN_STRIDE) -> dict[str, np.ndarray]:
+    """A (channels x pixels x kept texels, float32) on the texels whose index is a multiple of ``stride`` (1: all),
+    with ``texel_index`` (those texels) and ``pixel_index`` (all of A's pixels)."""
     from objcam.transport.storage import load_group
 
     t = load_group(group)
-    sel = np.flatnonzero(t.texel_index % COLUMN_STRIDE == 0)
+    sel = np.flatnonzero(t.texel_index % stride == 0)
     return {"A": np.ascontiguousarray(t.A[:, :, sel]), "texel_index": t.texel_index[sel], "pixel_index": t.pixel_index}
 
 
