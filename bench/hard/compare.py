@@ -5,7 +5,7 @@
 BASE and each OTHER are bench.hard's raw rows (``OUT/rows_full.json``, ``OUT/rows_full-<hash>.json`` of a ``--set``
 run, or bench/hard_rows.json). Per family and overall: median and worst SSIM, how many targets beat the row-mean
 oracle, the median tonemapped RMSE, the share with the brightest source within one texel (5.6 deg) and with every
-band in [0.67, 1.5]; then, for each OTHER, the paired SSIM change (min, median, max, and how many targets moved
+band in [0.67, 1.5] (bench.hard.report's counts); then, for each OTHER, the paired SSIM change (min, median, max, and how many targets moved
 by more than 0.005 either way) and the medians per noise level.
 """
 
@@ -17,12 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.hard.report import _band_ok, _solved
+
 MOVED = 0.005  # an SSIM change counted as better or worse
 
 
 def load_rows(path: Path) -> list[dict]:
     """The solved rows of a bench.hard rows file."""
-    return [r for r in json.loads(Path(path).read_text())["rows"] if r.get("status") == "ok"]
+    return _solved(json.loads(Path(path).read_text())["rows"])
 
 
 def family_summary(rows: list[dict]) -> dict[str, dict[str, float]]:
@@ -35,7 +37,7 @@ def family_summary(rows: list[dict]) -> dict[str, dict[str, float]]:
     for name, rs in sorted(groups.items()):
         ssim = np.array([r["ssim"] for r in rs])
         rm = np.array([r["baselines"]["row_mean"]["ssim"] for r in rs])
-        bands = [all(0.67 <= b <= 1.5 for b in r["band_energy"] if b is not None) for r in rs]
+        bands = [_band_ok(r, 0.67, 1.5) for r in rs]  # as the block's own count: a band with no truth fails
         out[name] = {"n": len(rs), "ssim_median": float(np.median(ssim)), "ssim_min": float(ssim.min()),
                      "beats_row_mean": int(np.sum(ssim > rm)),
                      "tonemapped_rmse_median": float(np.median([r["tonemapped_rmse"] for r in rs])),
