@@ -56,3 +56,91 @@ def outlier_rows(y: np.ndarray, fit: np.ndarray, sigma_abs: float | None, k: flo
         rec["kept"] = f"more than {max_share:.0%} of the pixels: the model, not a few pixels, misfits"
         return np.zeros(len(y), bool), rec
     return rows, rec
+
+
+#: objcam.solvers.plan.params noise_model=brightness: pixels are binned by predicted brightness in steps of this
+#: factor (a bin's pixels differ by less than ~40% in brightness, so a nearly uniform plane is one bin whatever its
+#: small variations, and a bright object its own), and a bin of fewer than BRIGHTNESS_MIN_PIXELS (a robust variance
+#: to ~10%) joins its neighbour towards the median pixel
+BRIGHTNESS_STEP = np.sqrt(2.0)
+BRIGHTNESS_MIN_PIXELS = 100
+
+
+def brightness_bins(p: np.ndarray, step: float = BRIGHTNESS_STEP, min_pixels: int = BRIGHTNESS_MIN_PIXELS
+                    ) -> list[np.ndarray]:
+    """The pixels' indices grouped by brightness p (M,) >= 0, darkest group first: bins of log p of width log
+    ``step`` centred on the median pixel; a bin of fewer than ``min_pixels`` joins its neighbour towards the
+    median (pixels at p <= 0 count as the darkest bin)."""
+    p = np.asarray(p, dtype=np.float64)
+    if p.size == 0:
+        return []
+    pos = p > 0
+    med = float(np.median(p[pos])) if pos.any() else 1.0
+    k = np.full(p.size, np.iinfo(np.int64).min // 2, dtype=np.int64)
+    k[pos] = np.floor(np.log(p[pos] / med) / np.log(step) + 0.5).astype(np.int64)
+    k[~pos] = k[pos].min() if pos.any() else 0
+    ks, counts = np.unique(k, return_counts=True)
+    label = {int(b): int(b) for b in ks}
+    centre = 0  # the median pixel's bin
+    size = dict(zip((int(b) for b in ks), (int(c) for c in counts)))
+    # outermost first: a small bin moves inwards, adding its pixels to the next bin towards the median
+    for b in sorted(size, key=lambda b: -abs(b - centre)):
+        if b == centre or size[b] >= min_pixels:
+            continue
+        inner = [c for c in size if (c - b) * (centre - b) > 0 and abs(c - centre) < abs(b - centre)]
+        if not inner:
+            continue
+        to = min(inner, key=lambda c: abs(c - b))
+        size[to] += size.pop(b)
+        for key, lab in label.items():
+            if lab == b:
+                label[key] = to
+    groups: dict[int, list[int]] = {}
+    for b in ks:
+        groups.setdefault(label[int(b)], []).append(int(b))
+    return [np.flatnonzero(np.isin(k, groups[g])) for g in sorted(groups)]
+
+
+def brightness_weights(y: np.ndarray, fit: np.ndarray, sigma_abs: float | None, ordinary: float = 3.0
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel weights for a noise that grows with brightness, from a fit's residuals: (weights (M,), the
+    variance per brightness bin (B,), darkest first, in absolute units squared).
+
+    The pixels are grouped by the fit's channel mean (:func:`brightness_bins`); each bin's variance is the square
+    of its residuals' :func:`robust_scale` (all channels), floored at the stated noise's ``sigma_abs ** 2`` (None:
+    no floor) so that no pixel counts for more than the noise allows, then made non-decreasing in brightness
+    (:func:`nondecreasing`, weighted by the bins' sizes: shot noise and a model's relative errors grow with the
+    signal; a dark bin's larger misfit, e.g. at shadow edges, is pooled with the brighter bins instead of taking
+    the shadows' weight). A pixel's weight is ``min(1, ordinary^2 v_med / v)``, v_med the median pixel's variance:
+    1 for pixels whose misfit is within ``ordinary`` times a typical pixel's (ordinary misfit, as the outlier rule
+    counts it: objcam.solvers.plan.defaults.OUTLIER_CLEAN_SPREAD; the data term's weight against a prior is
+    unchanged), the inverse of the excess beyond (a bright object's shading the model lacks, a path tracer's noise
+    on bright pixels). y, fit: (M, C)."""
+    y = np.asarray(y, dtype=np.float64)
+    fit = np.asarray(fit, dtype=np.float64)
+    if y.shape != fit.shape or y.ndim != 2:
+        raise ValueError(f"y and fit must be (M, C) of one shape, got {y.shape} and {fit.shape}")
+    if y.shape[0] == 0:
+        return np.zeros(0), np.zeros(0)
+    r = y - fit
+    parts = brightness_bins(np.abs(fit).mean(axis=1))
+    floor = max(float(sigma_abs or 0.0) ** 2, 1e-300)
+    raw = np.array([max(robust_scale(r[part]) ** 2, floor) for part in parts])
+    per_bin = nondecreasing(raw, np.array([len(p) for p in parts], dtype=np.float64))
+    v = np.empty(len(y))
+    for b, part in enumerate(parts):
+        v[part] = per_bin[b]
+    return np.minimum(1.0, ordinary ** 2 * float(np.median(v)) / v), per_bin
+
+
+def nondecreasing(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The weighted least-squares non-decreasing fit of ``values`` (n,) (isotonic regression by pooling adjacent
+    violators): runs that decrease are replaced by their weighted mean."""
+    blocks: list[list[float]] = []  # [mean, weight, count]
+    for v, w in zip(np.asarray(values, np.float64), np.asarray(weights, np.float64)):
+        blocks.append([v, w, 1])
+        while len(blocks) > 1 and blocks[-2][0] > blocks[-1][0]:
+            m2, w2, n2 = blocks.pop()
+            m1, w1, n1 = blocks[-1]
+            blocks[-1] = [(m1 * w1 + m2 * w2) / (w1 + w2), w1 + w2, n1 + n2]
+    return np.concatenate([np.full(n, m) for m, _, n in blocks]) if blocks else np.zeros(0)

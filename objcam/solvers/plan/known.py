@@ -28,7 +28,7 @@ from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import EdgeResult, solve_edges
 from objcam.solvers.lowrank import gram_lowrank, lowrank_update
 from objcam.solvers.nnls import PCG_MIN_UNKNOWNS
-from objcam.solvers.outliers import outlier_rows
+from objcam.solvers.outliers import brightness_weights, outlier_rows
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_noise, noise_ls, texel_group, weak_texels
@@ -339,10 +339,22 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
     k0 = min(OUTLIER_AFTER_STEPS, params.edge_steps)
     rest = params.edge_steps - k0
 
+    flagged = [None]  # noise_model=brightness: the outlier rows proper among the reweighted ones
+
     def outliers(run) -> tuple[np.ndarray, np.ndarray, dict]:
         fit = tr.predict_pixels(run.x)[use]  # (float32 products: far below the noise)
         rows, rec = outlier_rows(Y, fit, sigma_abs, params.outlier_threshold, OUTLIER_MAX_SHARE)
         w = rec.pop("weights")
+        if params.noise_model == "brightness":  # every pixel weighted: the outliers' weights times the noise's
+            wt = np.ones(len(Y))
+            wt[rows] = w[rows] if params.outliers == "huber" else 0.0
+            bw, per_bin = brightness_weights(Y, fit, sigma_abs, OUTLIER_CLEAN_SPREAD)
+            wt *= bw
+            flagged[0] = rows
+            rec["noise_model"] = {"model": "brightness", "bin_sigma": [float(v) for v in np.sqrt(per_bin)],
+                                  "weight_min": float(wt.min()), "weight_max": float(wt.max())}
+            rows = wt != 1.0
+            return rows, 1.0 - wt[rows], rec
         return rows, (1.0 - w[rows] if params.outliers == "huber" else np.ones(int(rows.sum()))), rec
 
     def without(rows: np.ndarray, drop: np.ndarray, base: tuple, base_drop: np.ndarray) -> tuple[np.ndarray, tuple]:
@@ -353,7 +365,9 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
         change = d - base_drop
         sel = change != 0
         rejected = np.zeros(use.shape, bool)
-        rejected[np.flatnonzero(use)[rows]] = True
+        # the rows reported as rejected (outliers.png, the verdict's chi-squared) are the outliers proper, not the
+        # rows noise_model=brightness down-weights
+        rejected[np.flatnonzero(use)[rows if flagged[0] is None else flagged[0]]] = True
         moved = np.zeros(use.shape, bool)
         moved[np.flatnonzero(use)[sel]] = True
         return rejected, (downdated(tr, moved, Y[sel], change[sel], *base, chans, merged_on), d)
@@ -384,8 +398,10 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
                 rows, drop, rec = outliers(r)
                 rec.update(rounds=2, first_round_pixels=first)
                 rejected, (now, _) = without(rows, drop, now, d1)
-                rejected = rejected if rows.any() else None
+                rejected = rejected if rows.any() and rejected.any() else None
                 second_set.set_result(now)
+            if rejected is not None and not rejected.any():  # only down-weighted (noise_model), none rejected
+                rejected = None
             return (one((w, rest, now, r)) if rest > 0 else r), rejected, rec
         except BaseException as e:  # the others wait on these: they fail with it instead of hanging
             for f in (first_set, second_set):
@@ -414,13 +430,15 @@ def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: lis
     """(grams, rhs, yy) of the data term with A's rows ``rows`` (M,) bool weighted by 1 - drop (K,) (drop 1:
     removed, negative: added back): A_c^T A_c - A_o^T diag(drop) A_o, A_c^T y - A_o^T diag(drop) y_o, per block;
     Yo (K, 3) their pixels; P: the basis (N x N') when grams and rhs are merged onto it (then A_o P). The products
-    are in A's own float32 (its stored precision)."""
+    are in float64: in float32 their rounding, subtracted from a Gram matrix those rows dominate (a bright object
+    down-weighted by solve.noise_model), left it numerically indefinite (KKT 1e-8 instead of 1e-15 on
+    tests/test_end_to_end.py's capture)."""
     grams, rhs = list(grams), list(rhs)
     for c in range(len(grams)):
-        Ao = np.asarray(tr.A[c][rows], np.float32)
+        Ao = np.asarray(tr.A[c][rows], np.float64)
         if P is not None:
-            Ao = np.asarray((P.T @ Ao.T).T, np.float32)
-        Aw = drop[:, None].astype(np.float32) * Ao
+            Ao = np.asarray((P.T @ Ao.T).T, np.float64)
+        Aw = drop[:, None] * Ao
         G, out = grams[c], np.empty(grams[c].shape)
         # by blocks of rows: the one new N x N array and small temporaries (the whole float32 product and its
         # float64 copy were two more N x N arrays, each a fresh mapping whose pages fault in)
@@ -428,7 +446,7 @@ def downdated(tr, rows: np.ndarray, Yo: np.ndarray, drop: np.ndarray, grams: lis
         for r0 in range(0, G.shape[0], step):
             np.subtract(G[r0:r0 + step], Ao[:, r0:r0 + step].T @ Aw, out=out[r0:r0 + step])
         grams[c] = out
-        U = Ao.T.astype(np.float64)
+        U = Ao.T
         # the PCG preconditioner's low-rank bound of the new Gram from the old one's sketch (objcam.solvers.lowrank)
         lowrank_update(out, G, U, drop)
         rhs[c] = rhs[c] - U @ (drop[:, None] * Yo[:, chans[c]])

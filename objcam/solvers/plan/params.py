@@ -97,6 +97,15 @@ class SolveParams(BaseModel):
         "10 x the map's median) whose energy one or two of its texels explain to within the fit's own chi-squared "
         "spread is collapsed to them, the blob's other texels set to the sky around it (objcam.solvers.sources: the "
         "edge prior spreads a small lamp the data cannot place); 'off': the map as solved")
+    noise_model: Literal["brightness", "flat"] = Field(
+        "brightness", description="known albedo, prior=edges, outliers huber or reject (keep is plain least squares, "
+        "one noise): 'brightness': after the first edge steps the pixels are grouped by predicted brightness (bins a "
+        "factor sqrt 2 wide) and a group whose residuals' robust spread, made non-decreasing in brightness, exceeds "
+        "3x the median pixel's (OUTLIER_CLEAN_SPREAD: misfit beyond ordinary) is weighted down by the excess "
+        "(objcam.solvers.outliers.brightness_weights): a bright object's shading the model lacks, a path tracer's "
+        "noise on bright pixels. 'flat': one noise for every pixel. Measured (bench/results.md, issue 22 session "
+        "23): hard-suite median SSIM 0.745 -> 0.788 at 0.5% noise, 0.740 -> 0.766 at 2% (37 targets better, 4 "
+        "worse by at most 0.04), the core bench unchanged")
     outlier_threshold: float = Field(OUTLIER_K, gt=0, description="outliers=reject: the residual, in units of "
                                      "max(noise, robust spread), beyond which a pixel is dropped (6: a normal value "
                                      "exceeds it once in 5e8)")
