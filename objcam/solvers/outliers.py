@@ -75,30 +75,21 @@ def brightness_bins(p: np.ndarray, step: float = BRIGHTNESS_STEP, min_pixels: in
     if p.size == 0:
         return []
     pos = p > 0
-    med = float(np.median(p[pos])) if pos.any() else 1.0
-    k = np.full(p.size, np.iinfo(np.int64).min // 2, dtype=np.int64)
-    k[pos] = np.floor(np.log(p[pos] / med) / np.log(step) + 0.5).astype(np.int64)
-    k[~pos] = k[pos].min() if pos.any() else 0
-    ks, counts = np.unique(k, return_counts=True)
-    label = {int(b): int(b) for b in ks}
-    centre = 0  # the median pixel's bin
-    size = dict(zip((int(b) for b in ks), (int(c) for c in counts)))
-    # outermost first: a small bin moves inwards, adding its pixels to the next bin towards the median
-    for b in sorted(size, key=lambda b: -abs(b - centre)):
-        if b == centre or size[b] >= min_pixels:
-            continue
-        inner = [c for c in size if (c - b) * (centre - b) > 0 and abs(c - centre) < abs(b - centre)]
-        if not inner:
-            continue
-        to = min(inner, key=lambda c: abs(c - b))
-        size[to] += size.pop(b)
-        for key, lab in label.items():
-            if lab == b:
-                label[key] = to
-    groups: dict[int, list[int]] = {}
-    for b in ks:
-        groups.setdefault(label[int(b)], []).append(int(b))
-    return [np.flatnonzero(np.isin(k, groups[g])) for g in sorted(groups)]
+    if not pos.any():
+        return [np.arange(p.size)]
+    k = np.empty(p.size, dtype=np.int64)
+    k[pos] = np.floor(np.log(p[pos] / np.median(p[pos])) / np.log(step) + 0.5)
+    k[~pos] = k[pos].min()
+    ks, inv, counts = np.unique(k, return_inverse=True, return_counts=True)
+    into = np.arange(ks.size)  # the bin each bin's pixels go to
+    centre = int(np.searchsorted(ks, 0))  # the median pixel's bin
+    # from both ends inwards: a bin too small for a robust spread hands its pixels to its neighbour
+    for i in list(range(centre)) + list(range(ks.size - 1, centre, -1)):
+        if counts[i] < min_pixels:
+            nxt = i + 1 if i < centre else i - 1
+            counts[nxt] += counts[i]
+            into[into == i] = nxt
+    return [np.flatnonzero(into[inv] == b) for b in np.unique(into)]
 
 
 def brightness_weights(y: np.ndarray, fit: np.ndarray, sigma_abs: float | None, ordinary: float = 3.0
@@ -109,7 +100,7 @@ def brightness_weights(y: np.ndarray, fit: np.ndarray, sigma_abs: float | None, 
     The pixels are grouped by the fit's channel mean (:func:`brightness_bins`); each bin's variance is the square
     of its residuals' :func:`robust_scale` (all channels), floored at the stated noise's ``sigma_abs ** 2`` (None:
     no floor) so that no pixel counts for more than the noise allows, then made non-decreasing in brightness
-    (:func:`nondecreasing`, weighted by the bins' sizes: shot noise and a model's relative errors grow with the
+    (isotonic regression weighted by the bins' sizes: shot noise and a model's relative errors grow with the
     signal; a dark bin's larger misfit, e.g. at shadow edges, is pooled with the brighter bins instead of taking
     the shadows' weight). A pixel's weight is ``min(1, ordinary^2 v_med / v)``, v_med the median pixel's variance:
     1 for pixels whose misfit is within ``ordinary`` times a typical pixel's (ordinary misfit, as the outlier rule
@@ -120,27 +111,17 @@ def brightness_weights(y: np.ndarray, fit: np.ndarray, sigma_abs: float | None, 
     fit = np.asarray(fit, dtype=np.float64)
     if y.shape != fit.shape or y.ndim != 2:
         raise ValueError(f"y and fit must be (M, C) of one shape, got {y.shape} and {fit.shape}")
+    from scipy.optimize import isotonic_regression
+
     if y.shape[0] == 0:
         return np.zeros(0), np.zeros(0)
     r = y - fit
     parts = brightness_bins(np.abs(fit).mean(axis=1))
     floor = max(float(sigma_abs or 0.0) ** 2, 1e-300)
     raw = np.array([max(robust_scale(r[part]) ** 2, floor) for part in parts])
-    per_bin = nondecreasing(raw, np.array([len(p) for p in parts], dtype=np.float64))
+    # (pool adjacent violators: the weighted least-squares non-decreasing fit)
+    per_bin = isotonic_regression(raw, weights=np.array([len(p) for p in parts], dtype=np.float64)).x
     v = np.empty(len(y))
     for b, part in enumerate(parts):
         v[part] = per_bin[b]
     return np.minimum(1.0, ordinary ** 2 * float(np.median(v)) / v), per_bin
-
-
-def nondecreasing(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The weighted least-squares non-decreasing fit of ``values`` (n,) (isotonic regression by pooling adjacent
-    violators): runs that decrease are replaced by their weighted mean."""
-    blocks: list[list[float]] = []  # [mean, weight, count]
-    for v, w in zip(np.asarray(values, np.float64), np.asarray(weights, np.float64)):
-        blocks.append([v, w, 1])
-        while len(blocks) > 1 and blocks[-2][0] > blocks[-1][0]:
-            m2, w2, n2 = blocks.pop()
-            m1, w1, n1 = blocks[-1]
-            blocks[-1] = [(m1 * w1 + m2 * w2) / (w1 + w2), w1 + w2, n1 + n2]
-    return np.concatenate([np.full(n, m) for m, _, n in blocks]) if blocks else np.zeros(0)
