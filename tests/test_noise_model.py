@@ -11,32 +11,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from objcam.envmap import EnvGrid
 from objcam.solvers.outliers import brightness_bins, brightness_weights
-from objcam.solvers.plan.known import solve_known_edges
-from objcam.solvers.plan.params import SolveParams
-from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
+from tests.toy_scenes import TOY_NOISE, solve_toy, sun_sky_toy
 
-H = 16
 SIDE = 40
-NOISE = 0.01
-LS = 1.5 * NOISE  # the known-albedo edge prior's rule (objcam.solvers.plan.defaults.EDGE_LS_PER_SIGMA)
+NOISE = TOY_NOISE
 
 
 @pytest.fixture(scope="module")
 def toy():
-    grid = EnvGrid(H)
-    tr, keep = sphere_shadow_toy(grid, SIDE)
-    truth = sky_with_sun(grid, keep, sun=30.0)
-    clean = tr.predict(tr.x_from_envmap(truth)).reshape(-1, 3)
-    return tr, grid, truth, clean
+    return sun_sky_toy(side=SIDE)
 
 
 def _solve(tr, grid, y, sigma_abs, model):
-    use = np.ones(len(y), bool)
-    X, kkt, _, _, info, _ = solve_known_edges(tr, grid, use, y, LS, 1e-4, SolveParams(noise_model=model), None,
-                                              sigma_abs)
-    assert kkt.max() < 1e-6
+    X, info, _ = solve_toy(tr, grid, y, sigma_abs, noise_model=model)
     return X, info
 
 
@@ -132,7 +120,5 @@ def test_plain_least_squares_has_one_noise(toy):
     rng = np.random.default_rng(5)
     sigma_abs = NOISE * float(np.median(clean[clean > 0]))
     photo = clean + sigma_abs * rng.normal(size=clean.shape)
-    use = np.ones(len(photo), bool)
-    got = [solve_known_edges(tr, grid, use, photo, LS, 1e-4, SolveParams(outliers="keep", noise_model=m), None,
-                             sigma_abs)[0] for m in ("flat", "brightness")]
+    got = [solve_toy(tr, grid, photo, sigma_abs, outliers="keep", noise_model=m)[0] for m in ("flat", "brightness")]
     assert np.array_equal(got[0], got[1])

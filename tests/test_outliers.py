@@ -13,26 +13,19 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from objcam.envmap import EnvGrid
 from objcam.solvers.outliers import outlier_rows, robust_scale
-from objcam.solvers.plan.known import solve_known_edges
 from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.targets import TargetData, TargetSolution
 from objcam.solvers.plan.verdict import assess
-from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
+from tests.toy_scenes import TOY_NOISE, solve_toy, sun_sky_toy
 
-H = 16
 SIDE = 40
-NOISE = 0.01
-LS = 1.5 * NOISE  # the known-albedo edge prior's rule (objcam.solvers.plan.defaults.EDGE_LS_PER_SIGMA)
+NOISE = TOY_NOISE
 
 
 @pytest.fixture(scope="module")
 def toy():
-    grid = EnvGrid(H)
-    tr, keep = sphere_shadow_toy(grid, SIDE)
-    truth = sky_with_sun(grid, keep, sun=30.0)
-    clean = tr.predict(tr.x_from_envmap(truth)).reshape(-1, 3)
+    tr, grid, _, clean = sun_sky_toy(side=SIDE)
     rng = np.random.default_rng(1)
     sigma_abs = NOISE * float(np.median(clean[clean > 0]))
     photo = clean + sigma_abs * rng.normal(size=clean.shape)
@@ -43,11 +36,7 @@ def toy():
 
 
 def _solve(tr, grid, y, sigma_abs, mode):
-    use = np.ones(len(y), bool)
-    X, kkt, _, _, info, rejected = solve_known_edges(tr, grid, use, y, LS, 1e-4, SolveParams(outliers=mode),
-                                                     None, sigma_abs)
-    assert kkt.max() < 1e-6
-    return X, info, rejected
+    return solve_toy(tr, grid, y, sigma_abs, outliers=mode)
 
 
 def _error(X, ref):

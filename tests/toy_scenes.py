@@ -66,3 +66,31 @@ def cone_shadow_transport(grid: EnvGrid, texels: np.ndarray, m: int, rng: np.ran
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     vis = (axes @ dirs.T) < rng.uniform(0.6, 0.95, size=(m, 1))
     return vis * np.maximum(dirs[:, 2], 0)[None] * grid.solid_angles().ravel()[texels][None] / np.pi
+
+
+#: the sun-and-sky toy of :func:`sun_sky_toy`: per-pixel noise relative to the median pixel, and the known-albedo
+#: edge prior's smoothness rule at that noise (objcam.solvers.plan.defaults.EDGE_LS_PER_SIGMA)
+TOY_NOISE = 0.01
+TOY_LS = 1.5 * TOY_NOISE
+
+
+def sun_sky_toy(height: int = 16, side: int = 40, sun: float = 30.0):
+    """(transport, grid, truth (H, 2H, 3), clean photo (side^2, 3)): :func:`sphere_shadow_toy` under
+    :func:`sky_with_sun`, the photo without noise."""
+    grid = EnvGrid(height)
+    tr, keep = sphere_shadow_toy(grid, side)
+    truth = sky_with_sun(grid, keep, sun=sun)
+    return tr, grid, truth, tr.predict(tr.x_from_envmap(truth)).reshape(-1, 3)
+
+
+def solve_toy(tr, grid, y: np.ndarray, sigma_abs: float, **params):
+    """The known-albedo edge solve (objcam.solvers.plan.known.solve_known_edges) of photo y (M, 3) on every pixel at
+    TOY_LS, with SolveParams(**params); asserts it is exact. Returns (X, info, rejected)."""
+    from objcam.solvers.plan.known import solve_known_edges
+    from objcam.solvers.plan.params import SolveParams
+
+    use = np.ones(len(y), bool)
+    X, kkt, _, _, info, rejected = solve_known_edges(tr, grid, use, y, TOY_LS, 1e-4, SolveParams(**params), None,
+                                                     sigma_abs)
+    assert kkt.max() < 1e-6
+    return X, info, rejected

@@ -398,7 +398,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
                 rows, drop, rec = outliers(r)
                 rec.update(rounds=2, first_round_pixels=first)
                 rejected, (now, _) = without(rows, drop, now, d1)
-                rejected = rejected if rows.any() and rejected.any() else None
+                rejected = rejected if rows.any() else None
                 second_set.set_result(now)
             if rejected is not None and not rejected.any():  # only down-weighted (noise_model), none rejected
                 rejected = None
