@@ -48,7 +48,7 @@ from objcam.solvers.basis import group_sizes, merge_gram
 from objcam.solvers.lowrank import gram_lowrank
 from objcam.solvers.multilevel import MIN_UNKNOWNS, aggregates
 from objcam.solvers.nnls import PCG_MIN_UNKNOWNS, SolveResult, solve_exact
-from objcam.solvers.products import sym_dot
+from objcam.solvers.products import GramPlusSparse, sym_dot
 from objcam.solvers.regularization import regularized_gram
 
 
@@ -187,10 +187,17 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
-            Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
-            if solve is solve_exact:
-                res = solve(Q, B, passive0=passive[b], coarse=coarse, split=_split(G, Dw, ls_abs, lr_abs * ridge_w))
+            split = _split(G, Dw, ls_abs, lr_abs * ridge_w) if solve is solve_exact else None
+            if split is not None:
+                # the PCG free blocks need only products with Q = G + S: it is not formed (no N x N copy of G
+                # per step; objcam.solvers.products.GramPlusSparse)
+                Qs[b] = None
+                res = solve(GramPlusSparse(G, split[0]), B, passive0=passive[b], coarse=coarse, split=split)
+            elif solve is solve_exact:
+                Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
+                res = solve(Q, B, passive0=passive[b], coarse=coarse)
             else:
+                Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
                 res = solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0

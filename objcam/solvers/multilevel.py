@@ -63,5 +63,10 @@ def coarse_passive(Q: np.ndarray, B: np.ndarray, Pc: sp.spmatrix, solve) -> np.n
     coarse problem (passed in: this module is imported by objcam.solvers.nnls)."""
     Pc = sp.csr_matrix(Pc)
     B2 = B.reshape(B.shape[0], -1)
-    res = solve(merge_gram(Pc, Q), np.asarray(Pc.T @ B2))
+    if hasattr(Q, "S"):  # objcam.solvers.products.GramPlusSparse: P^T (G + S) P
+        Qc = merge_gram(Pc, Q.G)
+        Qc += (Pc.T @ Q.S @ Pc).toarray()
+    else:
+        Qc = merge_gram(Pc, Q)
+    res = solve(Qc, np.asarray(Pc.T @ B2))
     return np.asarray(Pc @ res.x) > 0

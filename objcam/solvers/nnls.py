@@ -38,7 +38,7 @@ import numpy as np
 from objcam.solvers import blockchol, nogil
 from objcam.solvers.blockchol import Factor as _Factor, free_block as _free_block, free_groups as _free_groups
 from objcam.solvers import multilevel
-from objcam.solvers.products import sym_dot
+from objcam.solvers.products import GramPlusSparse, diagonal, dot
 from objcam.threads import single_blas_thread
 
 
@@ -100,7 +100,7 @@ def kkt_residual(Q: np.ndarray, B: np.ndarray, X: np.ndarray, QX: np.ndarray | N
     """
     B2, X2 = _as_2d(B), _as_2d(X)
     G = (Q @ X2 if QX is None else QX) - B2
-    d = np.diag(Q)[:, None]
+    d = diagonal(Q)[:, None]
     nat = np.abs(np.minimum(d * X2, G))
     # A negative x is infeasible whatever the gradient says.
     nat = np.where(X2 < 0, np.maximum(nat, np.abs(d * X2)), nat)
@@ -363,7 +363,7 @@ class _PCGFree:
         self.V, self.lam = np.ascontiguousarray(V[:, keep]), lam[keep]
         S = sp.csc_matrix(S)
         # G's diagonal beyond the low-rank part (>= 0 for a Nystrom bound): a Jacobi term for the remainder
-        c = np.maximum(np.diag(Q) - S.diagonal() - (self.V * self.V) @ self.lam, 0.0)
+        c = np.maximum(diagonal(Q) - S.diagonal() - (self.V * self.V) @ self.lam, 0.0)
         self.M = sp.csr_matrix(S + sp.diags(c))  # rows of a free set are taken from it: CSR
         self.first = True  # until a first call leaves X and G consistent (G = Q X - B)
         self.loose = PCG_LOOSE > PCG_SLACK  # rounds before the pivoting's last are solved to PCG_LOOSE tg
@@ -397,8 +397,8 @@ class _PCGFree:
         return base.apply
 
     def _product(self, V: np.ndarray) -> np.ndarray:
-        """Q V (N, m) for V (N, m): :func:`objcam.solvers.products.sym_dot`."""
-        return sym_dot(self.Q, V)
+        """Q V (N, m) for V (N, m): :func:`objcam.solvers.products.dot`."""
+        return dot(self.Q, V)
 
     def _start(self, X: np.ndarray, G: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(X0, Q X0) for columns whose X (N, m), G = Q X - B (N, m) are the previous round's and F (N, m) the new
@@ -410,7 +410,7 @@ class _PCGFree:
         if moved.size > self.Q.shape[0] // 4:
             return X0, self._product(X0)
         if moved.size:
-            QX = QX + self.Q[moved].T @ (X0[moved] - X[moved])
+            QX = QX + self.Q.take(moved, axis=0).T @ (X0[moved] - X[moved])
         return X0, QX
 
     def _pcg(self, blocks: list[tuple[bytes, np.ndarray, list[int]]], X0: np.ndarray, QX: np.ndarray
@@ -591,19 +591,21 @@ def solve_exact(
     the KKT residual per column.
     """
     t0 = time.perf_counter()
-    Q = np.asarray(Q, dtype=np.float64)
+    op = isinstance(Q, GramPlusSparse)  # Q = G + S unformed (with ``split``: the PCG path needs only products)
+    if not op:
+        Q = np.asarray(Q, dtype=np.float64)
     B2 = _as_2d(B)
     n, ncol = B2.shape
     if Q.shape != (n, n):
         raise ValueError(f"Q is {Q.shape}, B has {n} rows")
     # (a non-finite entry makes the sum non-finite: the N^2 elementwise test only when the sum is, e.g. overflowed)
-    if not (np.isfinite(Q.sum()) or np.all(np.isfinite(Q))) or not np.all(np.isfinite(B2)):
+    if not (Q.finite() if op else (np.isfinite(Q.sum()) or np.all(np.isfinite(Q)))) or not np.all(np.isfinite(B2)):
         raise ValueError("Q and B must be finite")
     if max_iter is None:
         max_iter = 10 * n + 100
     stats = _Stats()
 
-    d = np.diag(Q).copy()
+    d = diagonal(Q).copy()
     dmax = float(d.max()) if n else 0.0
     dead = d <= 1e-300 if dmax <= 0 else d <= 1e-20 * dmax
     if np.any(dead & np.any(B2 > 0, axis=1)):
@@ -625,7 +627,7 @@ def solve_exact(
     QX = None
     with single_blas_thread():
         if live.size:
-            Ql = Q if live.size == n else Q[np.ix_(live, live)]
+            Ql = Q if live.size == n else (Q.restrict(live) if op else Q[np.ix_(live, live)])
             Bl = B2[live]
             dl = d[live]
             bscale = np.max(np.abs(Bl), axis=0)
@@ -645,6 +647,8 @@ def solve_exact(
             allc = np.arange(ncol)
             use_pcg = split is not None and live.size >= PCG_MIN_BLOCK
             use_schur = not use_pcg and (live.size >= 256 if schur is None else bool(schur))
+            if op and not use_pcg:  # the Cholesky paths factorise blocks of Q: form it
+                Ql = Ql.toarray()
             if use_pcg:
                 S, V, lam = split
                 if live.size < n:
@@ -652,7 +656,7 @@ def solve_exact(
                 pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats)
                 pcg(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=pcg)
-                QX = sym_dot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective
+                QX = dot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective
                 if converged and float(kkt_residual(Ql, Bl, np.maximum(Xl, 0.0), QX=QX).max()) > tol:
                     # what PCG left above tol (not seen on the bench's solves): Cholesky blocks from its free set
                     restarts += 1

@@ -42,3 +42,63 @@ def sym_dot(Q: np.ndarray, V: np.ndarray) -> np.ndarray:
     for a, b in zip(starts, ends):
         out = blas.dgemm(1.0, Q[a:b].T, V[a:b], beta=1.0, c=out, overwrite_c=1)
     return out
+
+
+class GramPlusSparse:
+    """``Q = G + S`` for the exact solver without forming it: G (N, N) a dense symmetric float64 data Gram,
+    shared and never written (the luminance and chroma solves of a target read the same one), S (N, N) a sparse
+    symmetric matrix (a reweighting step's prior and ridge). A step's dense Q was a copy of G plus S: one N x N
+    array per solve alive at once (1.3 GB at 128 x 256) and a copy per step, where the PCG free blocks of
+    objcam.solvers.nnls only need products with Q, its diagonal and a few of its rows.
+
+    Supports what objcam.solvers.nnls uses: ``shape``, ``Q @ X`` (X (N,) or (N, m)), ``take(rows, axis=0)``
+    (rows of Q, (|rows|, N)), :meth:`diagonal`, :meth:`restrict` and :meth:`toarray`."""
+
+    ndim = 2
+    dtype = np.dtype(np.float64)
+
+    def __init__(self, G: np.ndarray, S):
+        import scipy.sparse as sp
+
+        if G.ndim != 2 or G.shape[0] != G.shape[1] or S.shape != G.shape:
+            raise ValueError(f"G {G.shape} and S {S.shape} must be the same square shape")
+        self.G, self.S = G, sp.csr_matrix(S, dtype=np.float64)
+        self.shape = G.shape
+
+    def __matmul__(self, X: np.ndarray) -> np.ndarray:
+        X2 = X.reshape(X.shape[0], -1)
+        out = sym_dot(self.G, X2)
+        out += self.S @ X2
+        return out.reshape(X.shape)
+
+    def take(self, rows: np.ndarray, axis: int = 0, mode: str = "raise") -> np.ndarray:
+        """Rows ``rows`` of Q (|rows|, N) (axis 0 only: Q is symmetric)."""
+        if axis != 0:
+            raise ValueError("GramPlusSparse.take: rows only (axis=0)")
+        out = self.G.take(rows, axis=0, mode=mode)
+        out += self.S[np.asarray(rows)].toarray()
+        return out
+
+    def diagonal(self) -> np.ndarray:
+        return np.diag(self.G) + self.S.diagonal()
+
+    def restrict(self, idx: np.ndarray) -> "GramPlusSparse":
+        """Q[idx][:, idx] as another GramPlusSparse (G's block is copied)."""
+        return GramPlusSparse(self.G[np.ix_(idx, idx)], self.S[idx][:, idx])
+
+    def finite(self) -> bool:
+        return bool(np.isfinite(self.S.data).all() and (np.isfinite(self.G.sum()) or np.isfinite(self.G).all()))
+
+    def toarray(self) -> np.ndarray:
+        """The dense Q (N, N): for the Cholesky paths, which factorise blocks of it."""
+        return self.G + self.S.toarray()
+
+
+def diagonal(Q) -> np.ndarray:
+    """Q's diagonal (N,), for a dense Q or a :class:`GramPlusSparse`."""
+    return Q.diagonal() if isinstance(Q, GramPlusSparse) else np.diag(Q)
+
+
+def dot(Q, V: np.ndarray) -> np.ndarray:
+    """Q V for a dense symmetric Q (:func:`sym_dot`) or a :class:`GramPlusSparse`."""
+    return Q @ V if isinstance(Q, GramPlusSparse) else sym_dot(Q, V)
