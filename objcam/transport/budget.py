@@ -7,11 +7,12 @@ What is counted, per camera (``channels`` 1 for a grey albedo, else 3; N the tex
 * A as float32: pixels x N x channels x 4 bytes;
 * the Gram matrices A_c^T A_c as float64 (channels x N^2 x 8), stored beside A and read by the solve;
 * the solve's working copies, ``SOLVE_COPIES`` x N^2 x 8 bytes per channel (an upper bound: the merged basis
-  has fewer unknowns than A has texels): the merged Gram matrix (objcam.solvers.basis.merge_gram, shared by the
-  edge prior's luminance and chroma solves, which run side by side) and per concurrent solve its regularised
-  Gram matrix (rewritten in place at every reweighting step) and a factor (of the whole matrix on the Schur
-  path, objcam.solvers.nnls._SchurFree, else of a free block, factorised in place). gram.npy itself is
-  memory-mapped (its pages are the file's, counted once in the Gram term).
+  has fewer unknowns than A has texels, ~0.6 N^2 at 128 x 256): the Gram matrix less the unusable pixels' rows
+  while it is merged, the merged Gram matrix (objcam.solvers.basis.merge_gram, shared by the edge prior's
+  luminance and chroma solves, which run side by side), its outlier downdates (objcam.solvers.plan.known), and
+  the verdict's float32 factor. Above objcam.solvers.nnls.PCG_MIN_UNKNOWNS the solves form no regularised Gram
+  matrix of their own (objcam.solvers.products.GramPlusSparse); below it the Cholesky paths' copies are small.
+  gram.npy itself is memory-mapped (its pages are the file's, counted once in the Gram term).
 
 N: with a support plane A keeps the texels above its horizon and the row below it (the sky a pixel near the
 plane's edge sees past it): ``(H/2 + 1) x 2H`` (measured: 1,088 at 32 x 64, 4,224 at 64 x 128 on the demo); without
@@ -32,10 +33,11 @@ from objcam.errors import StageError
 SECONDS_PER_PAIR = 6e-7
 GRAM_FLOPS = 2e10
 MEMORY_SHARE = 0.8  # of the machine's physical memory one build may plan to use
-# The known-albedo edge solve's working set: the shared merged Gram, and a Q and a factor per concurrent solve,
-# per channel. Checked against the peak at 128 x 256 (bench/results.md "128 x 256: the memory cut"): the estimate
-# 13.4 GiB with A and the Gram file, the measured peak 12.1 GiB RSS (10.0 GiB anonymous; the solve unfinished).
-SOLVE_COPIES = 5
+# The known-albedo edge solve's working set per channel, in N^2 float64 copies (module docstring). Checked against
+# the solve stage's peak at 128 x 256 (demo capture, direct A, one outlier downdate; bench/results.md, issue 26
+# session 24): 6.8 GiB RSS with A and the Gram file's pages, against 9.2 GiB estimated (it was 5 copies, 13.4 GiB,
+# while every solve formed its own Q: peak 9.3 GiB).
+SOLVE_COPIES = 3
 # The default edge solve's CPU seconds per target per texel^2 (the PCG free-block path of objcam.solvers.nnls,
 # session 18; solve.json's solve_cpu_seconds): 140 s at 16,640 texels (128 x 256, the forest synth capture, 12,744
 # unknowns after merging, quiet machine, 2026-12-04), 7.5-11.0 s at 4,224 (64 x 128, forest and courtyard
