@@ -81,6 +81,39 @@ def named_config(name: str) -> dict:
     return {"kind": kind, "options": dict(opts), "jobs": jobs}
 
 
+#: the modules a transport shard runs (objcam.transport.shards' tasks and the models they unpickle)
+WARM_MODULES = ("objcam.transport.shards", "objcam.transport.direct", "objcam.transport.gather",
+                "objcam.transport.geometry", "zarr")
+
+
+def _warm_plugin():
+    """A Dask worker plugin that imports WARM_MODULES and Mitsuba (its default variant) when a worker starts.
+
+    What a worker's first shard would otherwise spend before its first ray: ~0.5 CPU s per worker on this
+    project's machine (the objcam and zarr imports 0.46 s, Mitsuba's 0.2 s), paid once per worker's life either
+    way, but here while the driver is still preparing the capture instead of on the first shards' critical path,
+    and outside each capture's transport (bench/results.md, issue 25, session 24). Best effort: a worker that
+    cannot import them fails its first shard with the real error instead."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class Warm(WorkerPlugin):
+        name = "objcam-warm"
+
+        def setup(self, worker) -> None:
+            import importlib
+
+            try:
+                for m in WARM_MODULES:
+                    importlib.import_module(m)
+                from objcam.scene import use_mitsuba
+
+                use_mitsuba()
+            except Exception:  # (reported by the first shard that needs it)
+                pass
+
+    return Warm()
+
+
 @contextmanager
 def connect(spec: str, timeout: float = 60.0):
     """A ``distributed.Client`` on the cluster SPEC names, closed (with the cluster it started) on exit."""
@@ -119,6 +152,7 @@ def connect(spec: str, timeout: float = 60.0):
                 cluster.scale(jobs=cfg["jobs"])
             client = Client(cluster)  # batch jobs join when the queue starts them; shards wait for them
         try:
+            client.register_plugin(_warm_plugin(), name="objcam-warm")  # every worker, and those that join later
             yield client
         finally:
             client.close()
