@@ -257,6 +257,15 @@ def test_unformed_q_is_the_dense_q(prob):
     assert not _close(half.x, ref.x)
     # without a split the Cholesky paths factorise blocks of Q: formed there, the same minimiser
     assert _close(solve_exact(op, B).x, ref.x)
+    # a non-finite prior or Gram is refused (G's check is made once per array, S's every time)
+    bad = S.copy()
+    bad.data[0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        solve_exact(products.GramPlusSparse(G, bad), B, split=(bad, *gram_lowrank(G)))
+    Gn = G.copy()
+    Gn[3, 5] = np.inf
+    with pytest.raises(ValueError, match="finite"):
+        solve_exact(products.GramPlusSparse(Gn, S), B)
 
 
 @pytest.mark.parametrize("slack", [None, 1e6])

@@ -87,11 +87,31 @@ class GramPlusSparse:
         return GramPlusSparse(self.G[np.ix_(idx, idx)], self.S[idx][:, idx])
 
     def finite(self) -> bool:
-        return bool(np.isfinite(self.S.data).all() and (np.isfinite(self.G.sum()) or np.isfinite(self.G).all()))
+        return bool(np.isfinite(self.S.data).all() and _finite_once(self.G))
 
     def toarray(self) -> np.ndarray:
         """The dense Q (N, N): for the Cholesky paths, which factorise blocks of it."""
         return self.G + self.S.toarray()
+
+
+_finite: dict[int, object] = {}  # id -> weakref of the data Grams already found finite
+
+
+def _finite_once(G: np.ndarray) -> bool:
+    """Whether G is finite, checked once per array: a reweighted solve's steps all read the same G, which the
+    solver never writes (its sum is a full read of G: ~0.1 s a step at 128 x 256)."""
+    import weakref
+
+    ref = _finite.get(id(G))
+    if ref is not None and ref() is G:
+        return True
+    ok = bool(np.isfinite(G.sum()) or np.isfinite(G).all())
+    if ok:
+        try:
+            _finite[id(G)] = weakref.ref(G, lambda _r, key=id(G): _finite.pop(key, None))
+        except TypeError:  # (not weak-referenceable: checked every time)
+            pass
+    return ok
 
 
 def diagonal(Q) -> np.ndarray:
