@@ -297,3 +297,34 @@ def test_unformed_q_with_a_variable_nothing_constrains(prob):
     d = solve_exact(G0 + S0.toarray(), B0)
     assert r.info["fixed_zero_variables"] == 2 and np.all(r.x[~keep] == 0)
     assert np.all(r.kkt_residual <= KKT_TOL) and _close(r.x, d.x)
+
+
+def test_edge_steps_before_the_last_are_solved_to_step_tol(prob, monkeypatch):
+    """On the PCG path a step that only sets the next step's weights is solved to STEP_TOL (KKT 1e-8), the last to
+    solve_exact's default; a run that stops early on a loose step solves it again to the default. The answer is
+    the all-exact run's."""
+    D, Q, B, G, S, ls, lr, _ = prob
+    calls = []
+
+    def spy(Q_, B_, **kw):
+        r = solve_exact(Q_, B_, **kw)
+        calls.append(kw.get("tol"))
+        return r
+
+    monkeypatch.setattr(edges, "solve_exact", spy)
+    kw = dict(steps=3, eps_rel=0.01, tone=0.3, tol=0.0)  # (tol 0: no early stop)
+    a = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, **kw)
+    assert a.steps == 3 and calls == [edges.STEP_TOL] * 3 + [None]
+    assert all(np.all(r.kkt_residual <= nnls.DEFAULT_TOL) for r in a.results)
+    calls.clear()
+    monkeypatch.setattr(edges, "STEP_TOL", nnls.DEFAULT_TOL)  # every step exact
+    b = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, **kw)
+    # (the loose steps' 1e-8 moves the edge scale and weights by ~1e-9; the reweighting carries that to ~2e-7 of x)
+    assert np.abs(a.x - b.x).max() <= 1e-6 * np.abs(b.x).max()
+    assert np.allclose(a.objective_history, b.objective_history, rtol=1e-9)
+    # an early stop (F's relative decrease below the default 1e-4) on a loose step: that step once more, exact
+    monkeypatch.setattr(edges, "STEP_TOL", 1e-8)
+    calls.clear()
+    e = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, **{**kw, "steps": 6, "tol": 1e-4})
+    assert e.steps < 6 and calls == [1e-8] * (e.steps + 1) + [None]
+    assert all(np.all(r.kkt_residual <= nnls.DEFAULT_TOL) for r in e.results)

@@ -232,7 +232,8 @@ PCG_MIN_BLOCK = 256
 PCG_SLACK = 1e-2
 #: the rounds before the pivoting's last stop PCG at this multiple of tg: their free sets are guesses that the
 #: next exchange corrects, so a rough solution serves (a round that finds nothing infeasible is redone to
-#: PCG_SLACK and checked again: the answer is the same)
+#: PCG_SLACK and checked again: the answer is the same). A solve at a looser tol than DEFAULT_TOL (the edge
+#: steps' STEP_TOL) keeps the default's loose scale: at 1e4 x its own tg the guesses took more rounds
 PCG_LOOSE = 1e4
 PCG_MAX_IT = 60
 #: a free set whose difference from a base's is at most this many times the preconditioner's rank k is served
@@ -359,6 +360,7 @@ class _PCGFree:
         import scipy.sparse as sp
 
         self.Q, self.B, self.stats, self.tg = Q, B, stats, tg
+        self.loose_tg = tg  # the loose rounds' scale (solve_exact: the default tol's, for any looser tol)
         keep = lam > 0
         self.V, self.lam = np.ascontiguousarray(V[:, keep]), lam[keep]
         S = sp.csc_matrix(S)
@@ -424,7 +426,7 @@ class _PCGFree:
         for _, idx, group in blocks:
             spans.append((idx, slice(j, j + len(group))))
             j += len(group)
-        lim = (PCG_LOOSE if self.loose else PCG_SLACK) * self.tg[cols]  # (m,)
+        lim = PCG_LOOSE * self.loose_tg[cols] if self.loose else PCG_SLACK * self.tg[cols]  # (m,)
         mask = np.zeros(X0.shape, dtype=bool)
         for idx, sl in spans:
             mask[idx, sl] = True
@@ -553,10 +555,14 @@ def _pivot(Q, B, F, X, G, tg, tx, cols, max_iter, stats: _Stats, free=None) -> t
         steps += 1
 
 
+#: solve_exact's relative KKT tolerance (its reported residual is ~this or less)
+DEFAULT_TOL = 1e-10
+
+
 def solve_exact(
     Q: np.ndarray,
     B: np.ndarray,
-    tol: float = 1e-10,
+    tol: float = DEFAULT_TOL,
     max_iter: int | None = None,
     passive0: np.ndarray | None = None,
     schur: bool | None = None,
@@ -654,6 +660,9 @@ def solve_exact(
                 if live.size < n:
                     S, V = S.tocsr()[live][:, live], V[live]
                 pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats)
+                # a looser tol (the edge steps' STEP_TOL) keeps the loose rounds where the default tol puts them:
+                # looser, their free sets are guesses that take more rounds (bench/results.md, issue 26)
+                pcg.loose_tg = np.minimum(tg, DEFAULT_TOL * bscale)
                 pcg(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=pcg)
                 QX = dot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective
