@@ -190,7 +190,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     if donor is not None and len(donor.buffers) == len(grams):
         Qs = [q if q is not None and q.shape == (n, n) else None for q in donor.buffers]
         donor.buffers = []  # (handed over: the donor's last Q is overwritten by the first step here)
-    loose: list[tuple | None] = [None] * len(grams)  # a block whose last solve stopped at STEP_TOL: (Q, B, split)
+    loose: list[tuple | None] = [None] * len(grams)  # a block whose last solve stopped at STEP_TOL: (Q, split)
     for step in range(first, steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
@@ -204,7 +204,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 # a step that is not the last only sets the next step's weights: solved to STEP_TOL
                 kw = {} if step == steps else {"tol": STEP_TOL}
                 res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, **kw)
-                loose[b] = (op, B, split) if kw else None
+                loose[b] = (op, split) if kw else None
             elif solve is solve_exact:
                 Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
                 res = solve(Q, B, passive0=passive[b], coarse=coarse)
@@ -228,9 +228,9 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
             bw = tone_weights(M, X, tone, tone_floor)
         w = bw * s / np.maximum(r, eps)
     if any(v is not None for v in loose):  # stopped early on a loose step: its solves finished to the full tol
-        for b, ch in enumerate(chans):
+        for b, (B, ch) in enumerate(zip(rhs, chans)):
             if loose[b] is not None:
-                op, B, split = loose[b]
+                op, split = loose[b]
                 res = solve(op, B, passive0=passive[b], split=split)
                 X[:, list(ch)] = res.x.reshape(n, -1)
                 passive[b] = res.x.reshape(n, -1) > 0

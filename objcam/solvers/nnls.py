@@ -38,7 +38,7 @@ import numpy as np
 from objcam.solvers import blockchol, nogil
 from objcam.solvers.blockchol import Factor as _Factor, free_block as _free_block, free_groups as _free_groups
 from objcam.solvers import multilevel
-from objcam.solvers.products import GramPlusSparse, diagonal, dot
+from objcam.solvers.products import GramPlusSparse, all_finite, diagonal, dot
 from objcam.threads import single_blas_thread
 
 
@@ -356,11 +356,11 @@ class _PCGFree:
     """
 
     def __init__(self, Q: np.ndarray, B: np.ndarray, S, V: np.ndarray, lam: np.ndarray, tg: np.ndarray,
-                 stats: _Stats):
+                 stats: _Stats, loose_tg: np.ndarray | None = None):
         import scipy.sparse as sp
 
         self.Q, self.B, self.stats, self.tg = Q, B, stats, tg
-        self.loose_tg = tg  # the loose rounds' scale (solve_exact: the default tol's, for any looser tol)
+        self.loose_tg = tg if loose_tg is None else loose_tg  # the loose rounds' scale (PCG_LOOSE x it)
         keep = lam > 0
         self.V, self.lam = np.ascontiguousarray(V[:, keep]), lam[keep]
         S = sp.csc_matrix(S)
@@ -605,7 +605,7 @@ def solve_exact(
     if Q.shape != (n, n):
         raise ValueError(f"Q is {Q.shape}, B has {n} rows")
     # (a non-finite entry makes the sum non-finite: the N^2 elementwise test only when the sum is, e.g. overflowed)
-    if not (Q.finite() if op else (np.isfinite(Q.sum()) or np.all(np.isfinite(Q)))) or not np.all(np.isfinite(B2)):
+    if not (Q.finite() if op else all_finite(Q)) or not np.all(np.isfinite(B2)):
         raise ValueError("Q and B must be finite")
     if max_iter is None:
         max_iter = 10 * n + 100
@@ -659,10 +659,9 @@ def solve_exact(
                 S, V, lam = split
                 if live.size < n:
                     S, V = S.tocsr()[live][:, live], V[live]
-                pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats)
                 # a looser tol (the edge steps' STEP_TOL) keeps the loose rounds where the default tol puts them:
                 # looser, their free sets are guesses that take more rounds (bench/results.md, issue 26)
-                pcg.loose_tg = np.minimum(tg, DEFAULT_TOL * bscale)
+                pcg = _PCGFree(Ql, Bl, S, V, lam, tg, stats, loose_tg=np.minimum(tg, DEFAULT_TOL * bscale))
                 pcg(F, allc, Xl, Gl)
                 it, converged = _pivot(Ql, Bl, F, Xl, Gl, tg, tx, allc, max_iter, stats, free=pcg)
                 QX = dot(Ql, np.maximum(Xl, 0.0))  # the final check's product, kept for the KKT and objective

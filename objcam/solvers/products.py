@@ -94,6 +94,12 @@ class GramPlusSparse:
         return self.G + self.S.toarray()
 
 
+def all_finite(a: np.ndarray) -> bool:
+    """Whether every entry of ``a`` is finite: one sum (a non-finite entry makes it non-finite), and the
+    elementwise test only when the sum is not finite (e.g. overflowed)."""
+    return bool(np.isfinite(a.sum()) or np.all(np.isfinite(a)))
+
+
 _finite: dict[int, object] = {}  # id -> weakref of the data Grams already found finite
 
 
@@ -105,7 +111,7 @@ def _finite_once(G: np.ndarray) -> bool:
     ref = _finite.get(id(G))
     if ref is not None and ref() is G:
         return True
-    ok = bool(np.isfinite(G.sum()) or np.isfinite(G).all())
+    ok = all_finite(G)
     if ok:
         try:
             _finite[id(G)] = weakref.ref(G, lambda _r, key=id(G): _finite.pop(key, None))
