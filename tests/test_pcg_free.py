@@ -219,8 +219,9 @@ def test_updated_preconditioners_keep_the_iterations_and_the_minimiser(prob, mon
     assert np.all(r.kkt_residual <= KKT_TOL) and _close(r.x, f.x) and _close(r.x, ref.x)
 
 
-def test_products_read_only_the_nonzero_rows():
+def test_products_read_only_the_nonzero_rows(monkeypatch):
     """products.sym_dot: Q V from the runs of V's nonzero rows equals the full product."""
+    monkeypatch.setattr(products, "SYMV_COST", 1.0)  # (the row runs, not dsymv: test_symv_products)
     rng = np.random.default_rng(2)
     A = rng.standard_normal((300, 200))
     Q = A.T @ A
@@ -232,6 +233,45 @@ def test_products_read_only_the_nonzero_rows():
     s, e = products.nonzero_runs(np.any(V != 0, axis=1))
     part = Q[:, : e[-2]] @ V[: e[-2]]
     assert not np.abs(part - full).max() <= 1e-12 * np.abs(full).max()
+
+
+def test_symv_products_are_the_full_product():
+    """nogil.symv (BLAS dsymv per column, the GIL released) and sym_dot's dispatch to it: Q V for C- and
+    Fortran-ordered Q, 1-D, strided and Fortran-ordered V, to rounding."""
+    from objcam.solvers import nogil
+
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((400, 300))
+    Q = A.T @ A
+    full = rng.standard_normal((300, 5))
+    for V in (full[:, :3], np.asfortranarray(full[:, :3]), full[:, ::2], full[:, 0]):
+        ref = Q @ V
+        for Qm in (Q, np.asfortranarray(Q)):
+            got = nogil.symv(Qm, V)
+            assert got.shape == ref.shape and np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert products.sym_dot(Q, full[:, :3]).flags.f_contiguous  # (3 dense columns: the dsymv path)
+    assert np.abs(products.sym_dot(Q, full[:, :3]) - Q @ full[:, :3]).max() <= 1e-12 * np.abs(Q @ full).max()
+    # only one triangle is read: an asymmetric matrix is not what it multiplies (the stated precondition)
+    U = np.triu(Q)
+    assert not np.allclose(nogil.symv(U, full[:, 0]), U @ full[:, 0])
+    with pytest.raises(ValueError, match="rows"):
+        nogil.symv(Q, full[:10])
+
+
+def test_x0_starts_cg_nearer_and_keeps_the_minimiser(prob):
+    """solve_exact(x0=...): CG starts from a nearby minimiser (the edge steps pass the previous step's); the same
+    minimiser in fewer CG iterations than from zero. Broken: x0 of the wrong shape is refused."""
+    D, Q, B, G, S, ls, lr, ref = prob
+    split = (S, *gram_lowrank(G))
+    op = products.GramPlusSparse(G, S * 1.1)  # a reweighting-like change of the prior
+    split2 = (S * 1.1, split[1], split[2])
+    passive = ref.x > 0
+    cold = solve_exact(op, B, passive0=passive, split=split2)
+    warm = solve_exact(op, B, passive0=passive, split=split2, x0=ref.x)
+    assert np.all(warm.kkt_residual <= KKT_TOL) and _close(warm.x, cold.x)
+    assert warm.info["cg_iterations"] < cold.info["cg_iterations"]
+    with pytest.raises(ValueError, match="x0"):
+        solve_exact(op, B, passive0=passive, split=split2, x0=ref.x[:-1])
 
 
 def test_unformed_q_is_the_dense_q(prob):

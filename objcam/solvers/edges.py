@@ -203,7 +203,9 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 op = GramPlusSparse(G, split[0])
                 # a step that is not the last only sets the next step's weights: solved to STEP_TOL
                 kw = {} if step == steps else {"tol": STEP_TOL}
-                res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, **kw)
+                # CG starts from the previous step's minimiser (close: the weights change little between steps)
+                x0 = X[:, list(ch)] if passive[b] is not None else None
+                res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, x0=x0, **kw)
                 loose[b] = (op, split) if kw else None
             elif solve is solve_exact:
                 Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
@@ -231,7 +233,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         for b, (B, ch) in enumerate(zip(rhs, chans)):
             if loose[b] is not None:
                 op, split = loose[b]
-                res = solve(op, B, passive0=passive[b], split=split)
+                res = solve(op, B, passive0=passive[b], split=split, x0=X[:, list(ch)])
                 X[:, list(ch)] = res.x.reshape(n, -1)
                 passive[b] = res.x.reshape(n, -1) > 0
                 results[b] = res

@@ -568,6 +568,7 @@ def solve_exact(
     schur: bool | None = None,
     coarse=None,
     split: tuple | None = None,
+    x0: np.ndarray | None = None,
 ) -> SolveResult:
     """Exact minimiser of ``0.5 x^T Q x - b^T x`` over ``x >= 0`` for every column of ``B``.
 
@@ -591,6 +592,9 @@ def solve_exact(
         preconditioned by ``S + V diag(lam) V^T`` (:class:`_PCGFree`) instead of Cholesky; ``schur`` is then
         ignored. The pivoting, its tolerance and the final KKT check are the same; a solve that ends above
         ``tol`` is finished from its free set with Cholesky blocks (counted in ``info["pcg_restarts"]``).
+    x0: optional (N,) or (N, C) starting point for the PCG path's first free-block solves (e.g. the previous
+        reweighting step's minimiser): its values on the first free set, 0 elsewhere. It changes where CG starts,
+        not the minimiser; the Cholesky paths solve their blocks directly and ignore it.
 
     Block principal pivoting with Cholesky of the free blocks; see the module docstring. Runs with one BLAS
     thread. Returns a :class:`SolveResult` with x (N, C), the Gram-form objective ``x^T Q x - 2 b^T x`` and
@@ -649,6 +653,12 @@ def solve_exact(
                 p0 = p0[:, None] if p0.ndim == 1 else p0
                 F = np.broadcast_to(p0, (n, ncol))[live].copy()
             Xl = np.zeros((live.size, ncol))
+            if x0 is not None:
+                x0 = np.asarray(x0, dtype=np.float64)
+                x0 = x0[:, None] if x0.ndim == 1 else x0
+                if x0.shape != (n, ncol) or not np.all(np.isfinite(x0)):
+                    raise ValueError(f"x0 must be finite with shape {(n, ncol)}, got {x0.shape}")
+                Xl = np.where(F, np.maximum(x0[live], 0.0), 0.0)
             Gl = np.zeros((live.size, ncol))
             allc = np.arange(ncol)
             use_pcg = split is not None and live.size >= PCG_MIN_BLOCK

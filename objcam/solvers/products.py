@@ -9,12 +9,20 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import blas
 
+from objcam.solvers import nogil
+
 #: products with Q read only the rows where the vector is nonzero, as runs of contiguous rows (gaps of at most
 #: RUNS_GAP zero rows are read through: one BLAS call costs about as much as a few rows); a plain product when
 #: more than RUNS_MAX_SHARE of the rows are nonzero or the runs are more than RUNS_MAX
 RUNS_GAP = 4
 RUNS_MAX_SHARE = 0.95
 RUNS_MAX = 256
+#: BLAS dsymv per column (objcam.solvers.nogil.symv: one triangle of Q, no packing, GIL released) costs about
+#: SYMV_COST x a full read of Q's rows by the row-run products per column: it serves V with
+#: ``m SYMV_COST < (share of nonzero rows)``. Measured on one core, 3,136 x 3,136, contiguous free sets: dsymv
+#: 1.5 ms per column whatever the share, row runs ~9.5 ms x the share for 2-6 columns (8.4 ms for 3 full
+#: columns, 4.5 by dsymv)
+SYMV_COST = 0.16
 
 
 def nonzero_runs(nz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -33,8 +41,13 @@ def sym_dot(Q: np.ndarray, V: np.ndarray) -> np.ndarray:
     As (V^T Q)^T: the row-major product reads Q ~1.7x faster for a few columns (a 3,131 x 3,131 Q times 3
     columns: 10 against 17 ms on one core). V of a free-block solve is 0 off its free rows: Q V = sum over V's
     runs of nonzero rows of Q[a:b]^T V[a:b], a BLAS product on contiguous rows of Q each, accumulated in place,
-    and the zero set's rows are never read (3 columns 69-87% free: 6.9 against 8.3 ms)."""
+    and the zero set's rows are never read (3 columns 69-87% free: 6.9 against 8.3 ms). With few columns and
+    most rows nonzero, BLAS dsymv per column is faster still (SYMV_COST): Q must then be exactly symmetric (one
+    triangle is read)."""
     nz = np.any(V != 0, axis=1)
+    if (V.shape[1] * SYMV_COST < nz.mean() and Q.dtype == np.float64
+            and (Q.flags.c_contiguous or Q.flags.f_contiguous)):
+        return nogil.symv(Q, V)
     starts, ends = nonzero_runs(nz)
     if nz.mean() > RUNS_MAX_SHARE or starts.size > RUNS_MAX:
         return (np.ascontiguousarray(V.T) @ Q).T
