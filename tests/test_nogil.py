@@ -59,3 +59,15 @@ def test_the_calls_release_the_gil():
     # ctypes releases the GIL for functions of CFUNCTYPE, not for those flagged as Python API calls
     for name, nargs in (("dpotrf", 5), ("dpotrs", 8), ("dtrtrs", 10)):
         assert not nogil._fn(name, nargs)._flags_ & ctypes._FUNCFLAG_PYTHONAPI
+    assert not nogil._fn("dsymv", 10, blas=True)._flags_ & ctypes._FUNCFLAG_PYTHONAPI
+
+
+def test_symv_is_blas_dsymv():
+    """nogil.symv: the numbers of scipy's dsymv wrapper (the same routine), column by column."""
+    from scipy.linalg import blas
+
+    S = _spd(200, 3)
+    V = np.random.default_rng(1).standard_normal((200, 3))
+    got = nogil.symv(S, V)
+    for j in range(3):
+        assert np.array_equal(got[:, j], blas.dsymv(1.0, S.T, V[:, j], lower=1))

@@ -252,7 +252,6 @@ class _Base:
     outside it."""
 
     def __init__(self, idx: np.ndarray, mask: np.ndarray, M, V: np.ndarray, lam: np.ndarray):
-        from scipy.linalg import cho_factor
         from scipy.sparse.linalg import splu
 
         self.idx, self.mask = idx, mask
@@ -265,14 +264,12 @@ class _Base:
         if lam.size:
             Vf = V[idx]
             self.Y = self.lu.solve(Vf)  # M_FF^-1 V_F, (|F0|, k)
-            self.cap = cho_factor(np.diag(1.0 / lam) + Vf.T @ self.Y, check_finite=False)
+            self.cap = nogil.cho_factor(np.diag(1.0 / lam) + Vf.T @ self.Y)
 
     def apply(self, R: np.ndarray) -> np.ndarray:
-        from scipy.linalg import cho_solve
-
         Z = self.lu.solve(R)
         if self.Y is not None:
-            Z -= self.Y @ cho_solve(self.cap, self.Y.T @ R, check_finite=False)
+            Z -= self.Y @ nogil.cho_solve(self.cap, self.Y.T @ R)
         return Z
 
 
@@ -287,8 +284,6 @@ class _Bordered:
     application and a few |F| x (|R| + |A|) products."""
 
     def __init__(self, base: _Base, idx: np.ndarray, mask: np.ndarray, M, V: np.ndarray, lam: np.ndarray):
-        from scipy.linalg import cho_factor
-
         self.base = base
         inb = base.mask[idx]
         self.keep = np.flatnonzero(inb)  # rows of F in F0 (F' in F's order)
@@ -302,7 +297,7 @@ class _Bordered:
             E = np.zeros((self.n0, rem.size))
             E[self.pr, np.arange(rem.size)] = 1.0
             self.WR = base.apply(E)  # H's columns on R, (|F0|, |R|)
-            self.HRR = cho_factor(0.5 * (self.WR[self.pr] + self.WR[self.pr].T), check_finite=False)
+            self.HRR = nogil.cho_factor(0.5 * (self.WR[self.pr] + self.WR[self.pr].T))
         self.K = None
         if self.add.size:
             fa, fk = idx[self.add], idx[self.keep]
@@ -311,26 +306,22 @@ class _Bordered:
             B = Ma[:, fk].toarray().T + V[fk] @ Va.T  # P_F'A
             self.K = self._inner(B)
             T = Ma[:, fa].toarray() + V[fa] @ Va.T - B.T @ self.K
-            self.B, self.T = B, cho_factor(0.5 * (T + T.T), check_finite=False)
+            self.B, self.T = B, nogil.cho_factor(0.5 * (T + T.T))
 
     def _inner(self, R: np.ndarray) -> np.ndarray:
         """P_F'F'^-1 R for R (|F'|, m)."""
-        from scipy.linalg import cho_solve
-
         U = np.zeros((self.n0, R.shape[1]))
         U[self.pk] = R
         W = self.base.apply(U)
         if self.WR is not None:
-            W -= self.WR @ cho_solve(self.HRR, W[self.pr], check_finite=False)
+            W -= self.WR @ nogil.cho_solve(self.HRR, W[self.pr])
         return W[self.pk]
 
     def __call__(self, R: np.ndarray) -> np.ndarray:
-        from scipy.linalg import cho_solve
-
         Z = np.empty_like(R)
         z = self._inner(R[self.keep])
         if self.K is not None:
-            za = cho_solve(self.T, R[self.add] - self.B.T @ z, check_finite=False)
+            za = nogil.cho_solve(self.T, R[self.add] - self.B.T @ z)
             z -= self.K @ za
             Z[self.add] = za
         Z[self.keep] = z
