@@ -176,10 +176,16 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     cold = any(p is None for p in passive)
     coarse = aggregates(D) if cold and solve is solve_exact and n >= MIN_UNKNOWNS else None
 
-    def objective(X: np.ndarray) -> float:
+    def objective(X: np.ndarray, solved: Sequence | None = None) -> float:
+        """F(X); ``solved``: per block, None or the (result, S) of the exact solve that gave X's columns on
+        ``Q = G + S``: its data term is then the solve's objective minus x^T S x (S sparse), not a product with G"""
         data = 0.0
-        for G, B, ch in zip(grams, rhs, chans):
+        for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
             Xc = X[:, list(ch)]
+            if solved is not None and solved[b] is not None:
+                res, S = solved[b]
+                data += float(np.sum(res.objective)) - float(np.sum(Xc * (S @ Xc)))
+                continue
             # G symmetric: the row-major product reading only the rows where x is nonzero (objcam.solvers.products.sym_dot)
             data += float(np.sum(Xc * sym_dot(G, Xc)) - 2 * np.sum(B * Xc))
         prior = ls_abs * s * 2 * n_ch * float((bw * huber(edge_norms(D, X), eps)).sum()) if eps > 0 else 0.0
@@ -194,6 +200,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     for step in range(first, steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
+        solved: list = [None] * len(grams)  # (result, S) of the PCG path's solves, for the objective
         for b, (G, B, ch) in enumerate(zip(grams, rhs, chans)):
             split = _split(G, Dw, ls_abs, lr_abs * ridge_w) if solve is solve_exact else None
             if split is not None:
@@ -207,6 +214,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 x0 = X[:, list(ch)] if passive[b] is not None else None
                 res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, x0=x0, **kw)
                 loose[b] = (op, split) if kw else None
+                solved[b] = (res, split[0])
             elif solve is solve_exact:
                 Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
                 res = solve(Q, B, passive0=passive[b], coarse=coarse)
@@ -220,10 +228,10 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         if step == 0:
             s = float(np.sqrt(np.mean(r * r)))
             if s <= 0:  # a flat solution: nothing to reweight
-                history.append(objective(X))
+                history.append(objective(X, solved))
                 break
             eps = eps_rel * s
-        history.append(objective(X))
+        history.append(objective(X, solved))
         if len(history) > 2 - first and abs(history[-2] - history[-1]) <= tol * abs(history[-2]):
             break
         if tone > 0:
@@ -237,7 +245,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 X[:, list(ch)] = res.x.reshape(n, -1)
                 passive[b] = res.x.reshape(n, -1) > 0
                 results[b] = res
-        history[-1] = objective(X)
+                solved[b] = (res, split[0])
+        history[-1] = objective(X, solved)
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
     if basis is not None:
         X = np.asarray(P @ X)
