@@ -368,3 +368,30 @@ def test_edge_steps_before_the_last_are_solved_to_step_tol(prob, monkeypatch):
     e = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, **{**kw, "steps": 6, "tol": 1e-4})
     assert e.steps < 6 and calls == [1e-8] * (e.steps + 1) + [None]
     assert all(np.all(r.kkt_residual <= nnls.DEFAULT_TOL) for r in e.results)
+
+
+def test_a_run_that_is_continued_ends_loose_and_its_continuation_exact(prob, monkeypatch):
+    """solve_edges(final=False) (objcam.solvers.plan.known's outlier rounds, continued after their steps): its last
+    step too is solved to STEP_TOL; the run continued from it (start) ends exact, at the all-exact run's answer.
+    Broken: with final=True the first run's last step is exact (the call pattern differs)."""
+    D, Q, B, G, S, ls, lr, _ = prob
+    calls = []
+
+    def spy(Q_, B_, **kw):
+        calls.append(kw.get("tol"))
+        return solve_exact(Q_, B_, **kw)
+
+    monkeypatch.setattr(edges, "solve_exact", spy)
+    kw = dict(eps_rel=0.01, tone=0.3, tol=0.0)
+    first = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, steps=2, final=False, **kw)
+    assert first.steps == 2 and calls == [edges.STEP_TOL] * 3
+    calls.clear()
+    rest = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, steps=2, start=first, **kw)
+    assert calls == [edges.STEP_TOL, None] and all(np.all(r.kkt_residual <= nnls.DEFAULT_TOL) for r in rest.results)
+    calls.clear()
+    solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, steps=2, final=True, **kw)
+    assert calls == [edges.STEP_TOL] * 2 + [None]
+    monkeypatch.setattr(edges, "STEP_TOL", nnls.DEFAULT_TOL)  # every step exact
+    ref0 = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, steps=2, final=False, **kw)
+    ref = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, solve=spy, steps=2, start=ref0, **kw)
+    assert np.abs(rest.x - ref.x).max() <= 1e-6 * np.abs(ref.x).max()

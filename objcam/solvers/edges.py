@@ -119,7 +119,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 solve: Callable[..., SolveResult] = solve_exact, tone: float = 0.0,
                 tone_floor: float = 0.05, basis: sp.spmatrix | None = None, merged: bool = False,
                 start: EdgeResult | None = None, warm: EdgeResult | None = None,
-                keep_buffers: bool = False) -> EdgeResult:
+                keep_buffers: bool = False, final: bool = True) -> EdgeResult:
     """Minimise F (module docstring) over X >= 0; ``tone`` > 0 weights the edges by tone (module docstring).
 
     grams: one data Gram matrix A_c^T A_c (N, N) per block; rhs: its (N, len(chans[b])) right-hand sides
@@ -138,6 +138,9 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     its own edge scale, but not a cold start); ignored with ``start``.
     keep_buffers: the result holds the step's Q matrices (``buffers``) for a later solve given it as ``start``
     or ``warm``, which takes them over (else they are freed on return: one per block, N'^2 floats each).
+    final: False when a later run continues from this one (``start``) after its ``steps``: its last step too only
+    sets the continuation's weights and is solved to STEP_TOL on the PCG path. A run that stops early (F
+    converged) is final whatever this says: its last step is then solved again to the full tolerance.
     """
     M = edge_means(D) if tone > 0 else None
     ridge_w = np.ones(D.shape[1])  # texels per unknown: the ridge of the fine x
@@ -197,6 +200,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         Qs = [q if q is not None and q.shape == (n, n) else None for q in donor.buffers]
         donor.buffers = []  # (handed over: the donor's last Q is overwritten by the first step here)
     loose: list[tuple | None] = [None] * len(grams)  # a block whose last solve stopped at STEP_TOL: (Q, split)
+    early = False  # F converged (or the solution is flat) before ``steps``: this run is final
     for step in range(first, steps + 1):
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
@@ -209,7 +213,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 Qs[b] = None
                 op = GramPlusSparse(G, split[0])
                 # a step that is not the last only sets the next step's weights: solved to STEP_TOL
-                kw = {} if step == steps else {"tol": STEP_TOL}
+                kw = {} if step == steps and final else {"tol": STEP_TOL}
                 # CG starts from the previous step's minimiser (close: the weights change little between steps)
                 x0 = X[:, list(ch)] if passive[b] is not None else None
                 res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, x0=x0, **kw)
@@ -229,15 +233,18 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
             s = float(np.sqrt(np.mean(r * r)))
             if s <= 0:  # a flat solution: nothing to reweight
                 history.append(objective(X, solved))
+                early = True
                 break
             eps = eps_rel * s
         history.append(objective(X, solved))
         if len(history) > 2 - first and abs(history[-2] - history[-1]) <= tol * abs(history[-2]):
+            early = step < steps
             break
         if tone > 0:
             bw = tone_weights(M, X, tone, tone_floor)
         w = bw * s / np.maximum(r, eps)
-    if any(v is not None for v in loose):  # stopped early on a loose step: its solves finished to the full tol
+    if (final or early) and any(v is not None for v in loose):
+        # a final run whose last solves stopped at STEP_TOL (it stopped early): they are finished to the full tol
         for b, (B, ch) in enumerate(zip(rhs, chans)):
             if loose[b] is not None:
                 op, split = loose[b]

@@ -269,11 +269,12 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
 
     def one(job: tuple) -> EdgeResult:
         # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from, whether a later run will
-        # continue or warm from this one: it then keeps its Q buffers for that run)
-        w, steps, (g, b, y2), start, warm, keep = job + (None,) * (6 - len(job))
+        # continue or warm from this one: it then keeps its Q buffers for that run, whether a later run continues
+        # from this one after its steps: its last step is then not the answer (solve_edges' ``final``))
+        w, steps, (g, b, y2), start, warm, keep, continued = job + (None,) * (7 - len(job))
         return solve_edges(g, b, chans, y2, D, w, lr_abs, steps=steps, eps_rel=eps, tone=params.edge_tone,
                            tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm,
-                           keep_buffers=bool(keep))
+                           keep_buffers=bool(keep), final=not continued)
 
     # independent solves (luminance and chroma): a thread each (the caller holds one BLAS thread)
     if params.outliers == "keep":
@@ -331,7 +332,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
     run's Q may be alive during the second downdate, one N' x N' array more at the stage's peak than when the
     rounds waited for each other.
 
-    ``one((weight, steps, (grams, rhs, yy), start, warm, keep))`` runs solve_edges; ``data`` holds the full grams,
+    ``one((weight, steps, (grams, rhs, yy), start, warm, keep, continued))`` runs solve_edges; ``data`` holds the full grams,
     rhs and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
     record)."""
     from concurrent.futures import Future
@@ -378,7 +379,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
 
     def lead(w) -> tuple:
         try:
-            r = one((w, k0, data, None, None, True))
+            r = one((w, k0, data, None, None, True, rest > 0))
             rows, drop, rec = outliers(r)
             if not rows.any():
                 rec["rounds"] = 1
@@ -394,7 +395,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
             else:
                 first_set.set_result((now, True))
                 # (no buffers kept: held through the second downdate they would add to the stage's peak memory)
-                r = one((w, k0, now, None, r))
+                r = one((w, k0, now, None, r, None, rest > 0))
                 rows, drop, rec = outliers(r)
                 rec.update(rounds=2, first_round_pixels=first)
                 rejected, (now, _) = without(rows, drop, now, d1)
@@ -410,12 +411,12 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
             raise
 
     def follow(w):
-        r = one((w, k0, data, None, None, True))
+        r = one((w, k0, data, None, None, True, rest > 0))
         now, again = first_set.result()
         if now is data:  # no outliers: the plain solve
             return one((w, rest, data, r)) if rest > 0 and r.steps == k0 else r
         if again:
-            r = one((w, k0, now, None, r))
+            r = one((w, k0, now, None, r, None, rest > 0))
             now = second_set.result()
         return one((w, rest, now, r)) if rest > 0 else r
 
