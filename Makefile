@@ -11,7 +11,7 @@ DEMO_FULL_SYNTH_ARGS ?= --object bunny --envmap forest --albedo-known true --tar
 
 STAGES := ingest sfm geometry texture probe scene transport solve evaluate analysis report
 
-.PHONY: setup demo demo-full test bench bench-blender bench-resolution bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz bench-gi bench-cluster bench-variant status run clean-demo $(STAGES)
+.PHONY: setup demo demo-full test bench bench-blender bench-resolution bench-core bench-analysis bench-joint bench-probe bench-geometry bench-e2e bench-hard bench-fuzz bench-gi bench-cluster bench-solve-scaling bench-variant status run clean-demo $(STAGES)
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock scripts/setup.sh
@@ -53,12 +53,14 @@ test: $(STAMP)
 #             (issue 28; ~25 min, ARGS=--quick ~1 min)
 #   cluster   the transport on a LocalCluster against in-process: CPU overhead, A identical, a projection to 8
 #             workers from per-shard timings, measured at 32 x 64 texels and extrapolated to 64 x 128 (issue 25; ~5 min)
+#   solve-scaling  the default solve at 32 x 64 and 64 x 128 on the demo capture, alternated in one run (issue 26's
+#             <= 10x; ~2 min)
 #   resolution  32 x 64, 64 x 128 (128 x 256 where the budget allows) on the core HDRIs at 0.1% and 2% noise,
 #             the damped solver beside, and transport.env_height=auto's choices (issue 26; not in the default
 #             list: ~1 h on 2 cores the first time)
 #   variant   A from Mitsuba's cuda_ad_rgb against llvm_ad_rgb within the Monte Carlo tolerance (issue 25; needs a
 #             CUDA device, so not in the default list)
-BENCH ?= core analysis joint probe geometry e2e hard fuzz gi cluster
+BENCH ?= core analysis joint probe geometry e2e hard fuzz gi cluster solve-scaling
 bench: $(addprefix bench-,$(BENCH))
 bench-core: $(STAMP)
 	$(BIN)/python -m bench.run $(ARGS)
@@ -85,6 +87,8 @@ bench-blender: $(STAMP)
 	$(BIN)/python -m bench.blender_check --write $(ARGS)
 bench-cluster: $(STAMP)
 	$(BIN)/python -m bench.cluster_bench --env-height 32 --extrapolate 64 --project 2 8 --write $(ARGS)
+bench-solve-scaling: $(STAMP)
+	$(BIN)/python -m bench.solve_scaling --write $(ARGS)
 bench-resolution: $(STAMP)
 	$(BIN)/python -m bench.resolution_bench --write $(ARGS)
 bench-variant: $(STAMP)
