@@ -127,9 +127,9 @@ def test_a_failing_lead_run_fails_the_others_instead_of_hanging(toy):
     tr, grid, photo, _, _, sigma_abs = toy
     calls = []
 
-    def one(job):
-        calls.append(job[0])
-        if job[0] == "lead":
+    def one(w, steps, data, **kw):
+        calls.append(w)
+        if w == "lead":
             time.sleep(0.5)  # the chroma run is waiting for the lead's outlier set by then
             raise FloatingPointError("the lead's solve failed")
         return SimpleNamespace(x=np.zeros((tr.A.shape[2], 3)), steps=2)

@@ -267,18 +267,20 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
                     gram_lowrank(G)
     del grams_all, G_ref, G
 
-    def one(job: tuple) -> EdgeResult:
-        # (weight, steps, (grams, rhs, yy), the run to continue, the run to warm from, whether a later run will
-        # continue or warm from this one: it then keeps its Q buffers for that run, whether a later run continues
-        # from this one after its steps: its last step is then not the answer (solve_edges' ``final``))
-        w, steps, (g, b, y2), start, warm, keep, continued = job + (None,) * (7 - len(job))
+    def one(w: float, steps: int, data: tuple, start: EdgeResult | None = None, warm: EdgeResult | None = None,
+            keep: bool = False, continued: bool = False) -> EdgeResult:
+        """solve_edges at the prior weight ``w`` for ``steps`` reweightings on ``data`` (grams, rhs, yy). start:
+        the run to continue; warm: the run to warm from; keep: a later run continues or warms from this one (it
+        keeps its Q buffers for that run); continued: a later run continues from this one after its steps, so its
+        last step is not the answer (solve_edges' ``final``)."""
+        g, b, y2 = data
         return solve_edges(g, b, chans, y2, D, w, lr_abs, steps=steps, eps_rel=eps, tone=params.edge_tone,
                            tone_floor=params.edge_tone_floor, basis=basis, merged=merged, start=start, warm=warm,
-                           keep_buffers=bool(keep), final=not continued)
+                           keep_buffers=keep, final=not continued)
 
     # independent solves (luminance and chroma): a thread each (the caller holds one BLAS thread)
     if params.outliers == "keep":
-        runs = parallel_map(one, [(w, params.edge_steps, (grams, rhs, yy)) for w in weights])
+        runs = parallel_map(lambda w: one(w, params.edge_steps, (grams, rhs, yy)), weights)
         rejected = outlier_info = None
     else:
         runs, rejected, outlier_info = _robust_runs(one, weights, tr, use, Y, chans, sigma_abs, params,
@@ -332,7 +334,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
     run's Q may be alive during the second downdate, one N' x N' array more at the stage's peak than when the
     rounds waited for each other.
 
-    ``one((weight, steps, (grams, rhs, yy), start, warm, keep, continued))`` runs solve_edges; ``data`` holds the full grams,
+    ``one(weight, steps, (grams, rhs, yy), start=, warm=, keep=, continued=)`` runs solve_edges; ``data`` holds the full grams,
     rhs and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
     record)."""
     from concurrent.futures import Future
@@ -379,12 +381,12 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
 
     def lead(w) -> tuple:
         try:
-            r = one((w, k0, data, None, None, True, rest > 0))
+            r = one(w, k0, data, keep=True, continued=rest > 0)
             rows, drop, rec = outliers(r)
             if not rows.any():
                 rec["rounds"] = 1
                 first_set.set_result((data, False))
-                return (one((w, rest, data, r)) if rest > 0 and r.steps == k0 else r), None, rec
+                return (one(w, rest, data, start=r) if rest > 0 and r.steps == k0 else r), None, rec
             first = int(rows.sum())
             rejected, (now, d1) = without(rows, drop, data, np.zeros(len(Y)))
             if sigma_abs and rec["robust_scale"] <= OUTLIER_CLEAN_SPREAD * sigma_abs:
@@ -395,7 +397,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
             else:
                 first_set.set_result((now, True))
                 # (no buffers kept: held through the second downdate they would add to the stage's peak memory)
-                r = one((w, k0, now, None, r, None, rest > 0))
+                r = one(w, k0, now, warm=r, continued=rest > 0)
                 rows, drop, rec = outliers(r)
                 rec.update(rounds=2, first_round_pixels=first)
                 rejected, (now, _) = without(rows, drop, now, d1)
@@ -403,7 +405,7 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
                 second_set.set_result(now)
             if rejected is not None and not rejected.any():  # only down-weighted (noise_model), none rejected
                 rejected = None
-            return (one((w, rest, now, r)) if rest > 0 else r), rejected, rec
+            return (one(w, rest, now, start=r) if rest > 0 else r), rejected, rec
         except BaseException as e:  # the others wait on these: they fail with it instead of hanging
             for f in (first_set, second_set):
                 if not f.done():
@@ -411,14 +413,14 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
             raise
 
     def follow(w):
-        r = one((w, k0, data, None, None, True, rest > 0))
+        r = one(w, k0, data, keep=True, continued=rest > 0)
         now, again = first_set.result()
         if now is data:  # no outliers: the plain solve
-            return one((w, rest, data, r)) if rest > 0 and r.steps == k0 else r
+            return one(w, rest, data, start=r) if rest > 0 and r.steps == k0 else r
         if again:
-            r = one((w, k0, now, None, r, None, rest > 0))
+            r = one(w, k0, now, warm=r, continued=rest > 0)
             now = second_set.result()
-        return one((w, rest, now, r)) if rest > 0 else r
+        return one(w, rest, now, start=r) if rest > 0 else r
 
     # (one core: the lead runs to its end first, so the others never wait)
     got = parallel_map(lambda job: job[0](job[1]), [(lead, weights[0])] + [(follow, w) for w in weights[1:]])
