@@ -219,12 +219,9 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, x0=x0, **kw)
                 loose[b] = (op, split) if kw else None
                 solved[b] = (res, split[0])
-            elif solve is solve_exact:
-                Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
-                res = solve(Q, B, passive0=passive[b], coarse=coarse)
             else:
                 Q = Qs[b] = regularized_gram(G, Dw, ls_abs, lr_abs * ridge_w, out=Qs[b])
-                res = solve(Q, B)
+                res = solve(Q, B, passive0=passive[b], coarse=coarse) if solve is solve_exact else solve(Q, B)
             X[:, list(ch)] = res.x.reshape(n, -1)
             passive[b] = res.x.reshape(n, -1) > 0
             results.append(res)

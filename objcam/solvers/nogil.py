@@ -159,13 +159,12 @@ def symv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     v2, vec = _2d(v)
     if v2.shape[0] != n:
         raise ValueError(f"symv: a is {a.shape}, v has {v2.shape[0]} rows")
-    v2 = np.asarray(v2, dtype=np.float64)
+    # contiguous float64 columns: dsymv with a strided x (incx > 1) ran ~4x slower
+    v2 = np.asfortranarray(v2, dtype=np.float64)
     m = v2.shape[1]
     y = np.zeros((n, m), order="F")
     if n == 0 or m == 0:
         return y[:, 0] if vec else y
-    # contiguous columns: dsymv with a strided x (incx > 1) ran ~4x slower
-    v2 = np.asfortranarray(v2)
     f = _fn("dsymv", 10, blas=True)
     held = [ctypes.c_char(b"L"), ctypes.c_int(n), ctypes.c_double(1.0), ctypes.c_int(n), ctypes.c_int(1),
             ctypes.c_double(0.0), ctypes.c_int(1)]

@@ -45,11 +45,12 @@ def sym_dot(Q: np.ndarray, V: np.ndarray) -> np.ndarray:
     most rows nonzero, BLAS dsymv per column is faster still (SYMV_COST): Q must then be exactly symmetric (one
     triangle is read)."""
     nz = np.any(V != 0, axis=1)
-    if (V.shape[1] * SYMV_COST < nz.mean() and Q.dtype == np.float64
+    share = nz.mean()
+    if (V.shape[1] * SYMV_COST < share and Q.dtype == np.float64
             and (Q.flags.c_contiguous or Q.flags.f_contiguous)):
         return nogil.symv(Q, V)
     starts, ends = nonzero_runs(nz)
-    if nz.mean() > RUNS_MAX_SHARE or starts.size > RUNS_MAX:
+    if share > RUNS_MAX_SHARE or starts.size > RUNS_MAX:
         return (np.ascontiguousarray(V.T) @ Q).T
     out = np.zeros(V.shape, order="F")
     for a, b in zip(starts, ends):
