@@ -175,6 +175,33 @@ def test_edge_solve_with_pcg_matches_the_cholesky_one(prob, monkeypatch):
     assert not _close(c.x, b.x)
 
 
+def test_edge_steps_restart_from_the_coarse_free_set(prob, monkeypatch):
+    """The PCG path's reweighting steps after a cold run's first start from the coarse problem's free set at their
+    own weights (passive0 None, the aggregates given: objcam.solvers.nnls.solve_exact's coarse start) while it has
+    at most COARSE_RESTART_MAX unknowns, and from the previous step's free set past it; either way the steps end at
+    the same minimisers and objective history."""
+    D, Q, B, G, S, ls, lr, _ = prob
+    calls: list[tuple[bool, bool]] = []
+
+    def spy(Q_, B_, **kw):
+        calls.append((kw.get("passive0") is None, kw.get("coarse") is not None))
+        return solve_exact(Q_, B_, **kw)
+
+    monkeypatch.setattr(edges, "solve_exact", spy)
+    kw = dict(steps=3, eps_rel=0.01, tone=0.3, solve=spy)
+    a = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, **kw)
+    # every step from the coarse free set; a last step stopped at STEP_TOL is finished from its own (no aggregates)
+    steps = [c for c in calls if c[1]]
+    assert a.steps >= 2 and len(steps) == a.steps + 1 and all(cold for cold, _ in steps), calls
+    assert all(not cold for cold, coarse in calls if not coarse), calls
+    calls.clear()
+    monkeypatch.setattr(edges, "COARSE_RESTART_MAX", 0)  # (broken on purpose: no coarse problem is small enough)
+    b = solve_edges([G], [B], [[0, 1, 2]], np.ones(3), D, ls, lr, **kw)
+    assert calls[0] == (True, True) and not any(cold for cold, _ in calls[1:]), calls  # the first alone
+    assert a.steps == b.steps and np.allclose(a.objective_history, b.objective_history, rtol=1e-9)
+    assert _close(a.x, b.x) and all(np.all(r.kkt_residual <= KKT_TOL) for r in a.results)
+
+
 def _near_sets(n: int, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
     """(F0, F) (n,) bool: a base free set of ~60% and one that drops 20 of its variables and adds 15 others."""
     rng = np.random.default_rng(seed)

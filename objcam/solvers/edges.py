@@ -102,6 +102,16 @@ def tone_weights(M: sp.csr_matrix, X: np.ndarray, tone: float, floor: float) -> 
 #: CG iterations (bench/results.md, issue 26, session 24)
 STEP_TOL = 1e-8
 
+#: on the PCG path, the reweighting steps after a cold run's first start from the free set of the exact solution
+#: on the coarse aggregates at the step's own weights (objcam.solvers.multilevel: a merge and a small solve) instead
+#: of the previous step's free set, when the coarse problem has at most this many unknowns. The weights of steps 1
+#: and 2 move much of the free set (the demo's step 1: 839 of 9,408 variables wrong from the previous step, 56
+#: from the coarse problem), and each wrong variable costs pivoting rounds. Measured on 132 such solves at 64 x 128
+#: (the demo and six hard-suite captures, 785-764 coarse unknowns): 31.2 s from the previous free sets, 25.5 s from
+#: the coarse ones, better on 6 of 7 captures (bench/results.md, issue 26, session 26). At 128 x 256 (3,100 coarse
+#: unknowns) the coarse solve costs more than it saves (24.6 -> 54.8 s, session 25): 1,500 lies between
+COARSE_RESTART_MAX = 1500
+
 
 def _split(G: np.ndarray, Dw: sp.spmatrix, ls: float, lr: np.ndarray) -> tuple | None:
     """``(S, V, lam)`` for objcam.solvers.nnls.solve_exact's PCG free blocks: the step's sparse part ``S = ls Dw^T
@@ -216,7 +226,9 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 kw = {} if step == steps and final else {"tol": STEP_TOL}
                 # CG starts from the previous step's minimiser (close: the weights change little between steps)
                 x0 = X[:, list(ch)] if passive[b] is not None else None
-                res = solve(op, B, passive0=passive[b], coarse=coarse, split=split, x0=x0, **kw)
+                restart = coarse is not None and step > 0 and coarse.shape[1] <= COARSE_RESTART_MAX
+                res = solve(op, B, passive0=None if restart else passive[b], coarse=coarse, split=split, x0=x0,
+                            **kw)
                 loose[b] = (op, split) if kw else None
                 solved[b] = (res, split[0])
             else:
