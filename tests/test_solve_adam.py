@@ -106,8 +106,9 @@ def test_time_budget_stops_it(capture):
                  "--set", "transport.env_height=8", "--set", "solve.method=adam", "--set", "solve.adam_seconds=0.01",
                  "--set", "solve.adam_spp=2"]) == 0
     info = json.loads((capture / "objcam" / "solve" / "t0" / "solve.json").read_text())
-    # checked before each iteration: a 10 ms budget stops it after the first one or two (an iteration takes 5-15 ms
-    # here; a fresh clone's CI saw 2), far short of adam_max_iter (2,000), which an unchecked budget would reach
+    # checked before each iteration: a 10 ms budget stops it after the first one or two (an iteration takes ~8 ms
+    # here, 25 in a 0.2 s budget; a fresh clone saw 2), far short of adam_max_iter (2,000), which an unchecked budget
+    # would reach
     assert info["stopped"] == "time budget" and 1 <= info["iterations"] <= 5, info
 
 
