@@ -42,6 +42,14 @@ def test_crime_photo_adds_the_stated_noise_reproducibly():
     assert abs(float(d.mean())) < 2e-4 and float(d.std()) == pytest.approx(0.01 * float(np.median(y)), rel=0.02)
 
 
+def test_without_the_suites_run_it_says_what_to_run(tmp_path, capsys):
+    from bench.hard.ceiling import main
+
+    assert main(["--out", str(tmp_path / "nowhere")]) == 2
+    err = capsys.readouterr().err
+    assert "nowhere/captures does not exist" in err and "make bench BENCH=hard" in err and err.count("\n") == 1
+
+
 def test_the_ceiling_on_a_tiny_suite_capture(tmp_path):
     """On one tiny suite capture (the torus under the lamp 30 deg up, 32 x 32 pixels): the truth explains its photo
     far better than the truth rotated half a turn (a test of the test: the fit tells the right light from a

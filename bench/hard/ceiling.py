@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import zlib
 from pathlib import Path
 
@@ -70,7 +71,8 @@ def _seed(name: str) -> int:
 
 def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> list[dict]:
     """The rows of one capture's targets (those of ``families``, lighting-name prefixes, or all): truth fit and
-    ceiling scores. Reads ``work``'s scene and transport; writes nothing."""
+    ceiling scores. Reads ``work``'s scene and transport; writes nothing. The ceiling is solved with the default
+    SolveParams (the suite's captures set none in capture.toml)."""
     from bench.hard.score import band_energy_ratios
     from objcam.baselines import with_baselines
     from objcam.envmap import read_latlong, resample_to_height
@@ -196,6 +198,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true", help="write the block and bench/hard_ceiling_rows.json")
     a = ap.parse_args(argv)
     families = [f for f in a.family.split(",") if f] or None
+    if not (a.out / "captures").is_dir():
+        print(f"error: {a.out / 'captures'} does not exist: run the suite first (`make bench BENCH=hard`, or "
+              f"`python -m bench.hard --out {a.out}`), or pass --out its folder", file=sys.stderr)
+        return 2
     rows = []
     for cap in sorted((a.out / "captures").iterdir()):
         work = cap / a.work
