@@ -107,7 +107,7 @@ STEP_TOL = 1e-8
 #: of the previous step's free set, when the coarse problem has at most this many unknowns. The weights of steps 1
 #: and 2 move much of the free set (the demo's step 1: 839 of 9,408 variables wrong from the previous step, 56
 #: from the coarse problem), and each wrong variable costs pivoting rounds. Measured on 132 such solves at 64 x 128
-#: (the demo and six hard-suite captures, 785-764 coarse unknowns): 31.2 s from the previous free sets, 25.5 s from
+#: (the demo and six hard-suite captures, 764-785 coarse unknowns): 31.2 s from the previous free sets, 25.5 s from
 #: the coarse ones, better on 6 of 7 captures (bench/results.md, issue 26, session 26). At 128 x 256 (3,100 coarse
 #: unknowns) the coarse solve costs more than it saves (24.6 -> 54.8 s, session 25): 1,500 lies between
 COARSE_RESTART_MAX = 1500
@@ -188,6 +188,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     # continues or is warm-started has its free sets and never uses it
     cold = any(p is None for p in passive)
     coarse = aggregates(D) if cold and solve is solve_exact and n >= MIN_UNKNOWNS else None
+    restart = coarse is not None and coarse.shape[1] <= COARSE_RESTART_MAX  # (PCG path, steps after the first)
 
     def objective(X: np.ndarray, solved: Sequence | None = None) -> float:
         """F(X); ``solved``: per block, None or the (result, S) of the exact solve that gave X's columns on
@@ -226,9 +227,8 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
                 kw = {} if step == steps and final else {"tol": STEP_TOL}
                 # CG starts from the previous step's minimiser (close: the weights change little between steps)
                 x0 = X[:, list(ch)] if passive[b] is not None else None
-                restart = coarse is not None and step > 0 and coarse.shape[1] <= COARSE_RESTART_MAX
-                res = solve(op, B, passive0=None if restart else passive[b], coarse=coarse, split=split, x0=x0,
-                            **kw)
+                res = solve(op, B, passive0=None if restart and step > 0 else passive[b], coarse=coarse, split=split,
+                            x0=x0, **kw)
                 loose[b] = (op, split) if kw else None
                 solved[b] = (res, split[0])
             else:
