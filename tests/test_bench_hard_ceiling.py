@@ -56,7 +56,7 @@ def test_the_ceiling_on_a_tiny_suite_capture(tmp_path):
     wrong one), and the inverse crime (the truth through objcam's A, the stated noise) recovers the lamp within a
     texel (measured 0.1-0.2 deg). (At 32 x 32 pixels the ceiling's SSIM, 0.50-0.66, stays below the row-mean
     oracle's 0.85: not asserted.)"""
-    from bench.hard.ceiling import capture_rows, predict, truth_fit
+    from bench.hard.ceiling import capture_rows, truth_fit
     from objcam.envmap import read_latlong, resample_to_height
     from objcam.schemas.artifacts import SceneArtifact
     from objcam.solvers.plan.rules import fitted_noise
@@ -81,7 +81,7 @@ def test_the_ceiling_on_a_tiny_suite_capture(tmp_path):
     truth = resample_to_height(read_latlong(truth_envmap_path(cap, t.name))[..., :3].astype(np.float64),
                                tr.output_height)
     sigma_rel, _ = fitted_noise(t, d.pooled, d.pooled_ok, tr.downsample)
-    right = truth_fit(predict(tr.A, tr.x_from_envmap(truth)), d.y, d.use, sigma_rel)
+    right = truth_fit(tr.predict_pixels(tr.x_from_envmap(truth)).astype(np.float64), d.y, d.use, sigma_rel)
     turned = np.roll(truth, truth.shape[1] // 2, axis=1)
-    wrong = truth_fit(predict(tr.A, tr.x_from_envmap(turned)), d.y, d.use, sigma_rel)
+    wrong = truth_fit(tr.predict_pixels(tr.x_from_envmap(turned)).astype(np.float64), d.y, d.use, sigma_rel)
     assert wrong["chi2"] > 5 * right["chi2"], (right, wrong)

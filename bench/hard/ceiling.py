@@ -24,6 +24,7 @@ bench/hard_ceiling_rows.json.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import zlib
@@ -36,12 +37,6 @@ from bench.sections import invocation, write_section
 
 TITLE = "Hard cases: model error and the inverse-crime ceiling (issues 22, 28)"
 ROWS = Path("bench/hard_ceiling_rows.json")
-
-
-def predict(A, x: np.ndarray) -> np.ndarray:
-    """(M, 3) float64 image A x for A (C, M, N) (C = 1: grey, the same A for every channel; or 3) and x (N, 3)."""
-    return np.stack([np.asarray(A[0 if A.shape[0] == 1 else c] @ np.asarray(x[:, c], np.float32), np.float64)
-                     for c in range(3)], axis=1)
 
 
 def truth_fit(pred: np.ndarray, y: np.ndarray, use: np.ndarray, sigma_rel: float) -> dict:
@@ -69,6 +64,11 @@ def _seed(name: str) -> int:
     return zlib.crc32(name.encode())
 
 
+def _wanted(target: str, families: list[str] | None) -> bool:
+    """Whether ``target`` is of one of ``families`` (lighting-name prefixes; None: all)."""
+    return not families or any(target.startswith(f + "_") for f in families)
+
+
 def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> list[dict]:
     """The rows of one capture's targets (those of ``families``, lighting-name prefixes, or all): truth fit and
     ceiling scores. Reads ``work``'s scene and transport; writes nothing. The ceiling is solved with the default
@@ -86,7 +86,7 @@ def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> li
     from objcam.truth import truth_envmap_path
 
     scene = SceneArtifact.load(work / "scene")
-    if families and not any(t.name.startswith(f + "_") for t in scene.targets for f in families):
+    if not any(_wanted(t.name, families) for t in scene.targets):
         return []
     data = load_targets(scene, work / "transport")
     rows, truths = {}, {}
@@ -99,7 +99,7 @@ def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> li
             raise ValueError(f"{work}: a supersampled A (env_height {tr.env_height}): run on a default work folder")
         truths[t.name] = truth
         sigma_rel, _ = fitted_noise(t, d.pooled, d.pooled_ok, tr.downsample)
-        pred = predict(tr.A, tr.x_from_envmap(truth))
+        pred = tr.predict_pixels(tr.x_from_envmap(truth)).astype(np.float64)
         fit = truth_fit(pred, d.y, d.use, sigma_rel)
         rows[t.name] = {"target": t.name, "capture": cap.name, "noise_sigma": sigma_rel,
                         "truth_chi2": fit["chi2"], "truth_bias": fit["bias"]}
@@ -109,7 +109,7 @@ def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> li
     sols = solve_capture(scene, data, SolveParams(), cap)
     out = []
     for name, row in rows.items():
-        if families and not any(name.startswith(f + "_") for f in families):
+        if not _wanted(name, families):
             continue
         s = sols[name]
         m = with_baselines(envmap_metrics(s.envmap, truths[name], s.mask), truths[name], s.mask)
@@ -128,15 +128,17 @@ def _spread(vals, fmt: str = ".3g") -> str:
     return f"{np.median(v):{fmt}} ({v.min():{fmt}}-{v.max():{fmt}})" if v.size else ""
 
 
-def family_of(target: str) -> str:
-    """The lighting family of a suite target name (``lamp30_r0_n2`` -> lamp), as bench.hard.report groups them."""
+@functools.cache
+def _families() -> dict[str, str]:
     from bench.hard.design import cases
 
+    return {c.light.name: c.light.family for c in cases()}
+
+
+def family_of(target: str) -> str:
+    """The lighting family of a suite target name (``lamp30_r0_n2`` -> lamp), as bench.hard.report groups them."""
     name = target.split("_r")[0]
-    for c in cases():
-        if c.light.name == name:
-            return c.light.family
-    return name
+    return _families().get(name, name)
 
 
 def ceiling_targets(rows: list[dict], suite: dict[str, dict]) -> list[str]:
