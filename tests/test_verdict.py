@@ -17,7 +17,7 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.pipeline.cli import main
 from objcam.solvers.plan.targets import TargetData, TargetSolution
-from objcam.solvers.plan.verdict import assess, grade
+from objcam.solvers.plan.verdict import assess, dark_sky_area, grade
 from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
 
 H = 16
@@ -67,6 +67,34 @@ def test_a_wrong_envmap_turns_red(toy):
     assert v["chi2"] > 20 and v["grade"] == "red"
 
 
+def test_a_black_patch_in_the_sky_turns_red(toy):
+    """The clipped negative lobe of a misfit (issue 22, session 27: the rooms' dark rings around lamps smaller than
+    a texel) is black sky: a quarter of the sky's rows zeroed in azimuth is red; the truth itself has none; the same
+    texels left unsolved (outside the mask) are not counted."""
+    tr, truth, clean, photo = toy
+    assert _verdict(tr, photo, truth, clean)["dark_sky_area"] == 0.0
+    holed = truth.copy()
+    holed[: H // 2, : H // 2] = 0.0  # a quarter of every sky row's azimuths
+    v = _verdict(tr, photo, holed, tr.predict(tr.x_from_envmap(holed)))
+    assert v["dark_sky_area"] == pytest.approx(0.25, abs=0.02) and v["grade"] == "red"
+    assert any(r.startswith("25% of the sky is black") for r in v["reasons"])
+    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
+    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
+    mask = np.ones(holed.shape[:2], bool)
+    mask[: H // 2, : H // 2] = False
+    sol = TargetSolution(holed, mask, tr.predict(tr.x_from_envmap(holed)), {})
+    assert assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)["dark_sky_area"] == 0.0
+
+
+def test_dark_sky_area():
+    lum = np.array([1.0, 2.0, 0.0, 1e-9, 3.0, 0.0])
+    omega = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 5.0])
+    sky = np.array([True, True, True, True, True, False])
+    assert dark_sky_area(lum, omega, sky) == pytest.approx(2 / 5)  # 0 and 1e-9 of a 3.0 sky; the 6th is not sky
+    assert dark_sky_area(np.zeros(6), omega, sky) == 1.0  # a black map
+    assert dark_sky_area(lum, omega, np.zeros(6, bool)) == 0.0
+
+
 def test_grade_rules():
     assert grade({"chi2": 1.0, "uncertain_area": 0.1}) == ("green", [])
     g, why = grade({"chi2": 9.0, "uncertain_area": 0.1})
@@ -79,6 +107,10 @@ def test_grade_rules():
     assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
     assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
     assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
+    assert grade({"dark_sky_area": 0.01})[0] == "green"
+    assert grade({"dark_sky_area": 0.05})[0] == "yellow"
+    g, why = grade({"dark_sky_area": 0.2})
+    assert g == "red" and why[0].startswith("20% of the sky is black")
 
 
 def test_camera_looking_past_the_object_is_red(tmp_path, capsys):

@@ -13,6 +13,10 @@ No ground truth is used: every measure comes from the photo, the model and the s
   drew that part of the map. ``uncertain_visible_area``: the same where the spread also exceeds a fiftieth of the
   map's 99th-percentile brightness (the tonemap's white): the undetermined part a viewer sees (a dark, flat,
   undetermined background that the prior draws flat is not counted).
+* ``dark_sky_area``: the share of the solved sky (solid angle above the horizon) that the solve held at the
+  radiance >= 0 bound (luminance at most ``VERDICT_DARK_LEVEL`` x the sky's 99th percentile). No real sky is black
+  over an area; a black region is the clipped negative lobe of a fit to what the model cannot express, e.g. the
+  sharp shadows of a light smaller than a texel, which box texels can only sharpen by a dark ring around it.
 * ``below_horizon_energy``: the share of the map's energy (luminance x solid angle) the solve put below the
   horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
   texel's elevation and its column norm over the median column norm (how strongly the photo sees that direction).
@@ -44,6 +48,9 @@ from objcam.solvers.plan.defaults import (
     VERDICT_BELOW_YELLOW,
     VERDICT_CHI2_RED,
     VERDICT_CHI2_YELLOW,
+    VERDICT_DARK_LEVEL,
+    VERDICT_DARK_RED,
+    VERDICT_DARK_YELLOW,
     VERDICT_EXCLUDED_YELLOW,
     VERDICT_MARGIN_YELLOW,
     VERDICT_REJECTED_YELLOW,
@@ -179,10 +186,13 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     up = tr.directions[:, 2] > 0
     energy = np.clip(lum, 0, None) * omega
     total = max(float(energy.sum()), 1e-300)
+    mask = sol.fine[1] if sol.fine is not None else sol.mask
+    solved = np.ones(lum.size, bool) if mask is None else tr.x_from_envmap(np.asarray(mask, np.float32)).ravel() > 0
     rec: dict = {"noise_per_fitted_pixel": sigma_rel, "noise_source": noise_source,
                  "pixels_excluded": float(1.0 - d.use.mean()),
                  "pixels_rejected": float(0.0 if sol.rejected is None else sol.rejected.sum() / max(d.use.sum(), 1)),
-                 "below_horizon_energy": float(energy[~up].sum() / total)}
+                 "below_horizon_energy": float(energy[~up].sum() / total),
+                 "dark_sky_area": dark_sky_area(lum, omega, up & solved)}
     grams, nc = tr.gram(), tr.A.shape[0]  # (C, N, N), memory-mapped: read in bands, never copied whole
     dropped = [] if use.all() else [np.asarray(tr.A[c][~use], np.float64) for c in range(nc)]
     diag = data_gram_diagonal(grams, dropped)
@@ -211,6 +221,17 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     return rec
 
 
+def dark_sky_area(lum: np.ndarray, omega: np.ndarray, sky: np.ndarray) -> float:
+    """The share of the solid angle of the texels ``sky`` (N,) bool whose luminance ``lum`` (N,) is at most
+    VERDICT_DARK_LEVEL x the 99th percentile of the sky's (held at the radiance >= 0 bound); ``omega`` (N,) the
+    texels' solid angles (sr). A black sky (99th percentile 0) is dark everywhere; no sky texel: 0."""
+    if not sky.any():
+        return 0.0
+    white = float(np.percentile(lum[sky], 99))
+    dark = sky & (lum <= VERDICT_DARK_LEVEL * white) if white > 0 else sky
+    return float(omega[dark].sum() / omega[sky].sum())
+
+
 def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     """(grade, reasons) from the measures of :func:`assess` (missing measures are not judged)."""
     red, yellow = [], []
@@ -227,6 +248,13 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
         red.append(f"{uv:.0%} of the sky is not determined by the photo at the brightness it is shown")
     elif ua is not None and ua > VERDICT_UNCERTAIN_YELLOW:
         yellow.append(f"{ua:.0%} of the sky weakly determined (uncertainty above the value)")
+    dark = m.get("dark_sky_area", 0.0)
+    if dark > VERDICT_DARK_RED:
+        red.append(f"{dark:.0%} of the sky is black (held at radiance 0): the fit there answers what the model "
+                   "cannot express, e.g. the sharp shadows of a light smaller than a texel; see residual.exr")
+    elif dark > VERDICT_DARK_YELLOW:
+        yellow.append(f"{dark:.0%} of the sky is black (held at radiance 0): the model may miss a light smaller "
+                      "than a texel")
     below, el = m.get("below_horizon_energy", 0.0), m.get("brightest_elevation_deg", 90.0)
     if el < 0:
         red.append(f"the brightest light is below the horizon ({el:.1f} deg), seen only past the support's edge")
