@@ -172,8 +172,8 @@ VERDICT_MARGIN_YELLOW = 1.0 / 3.0
 #: clipped negative lobe of a deconvolution whose model misses what the photo shows, on the suite the sharp
 #: shadows of lamps smaller than a texel: with objcam's own A as the photo's model (bench.hard.ceiling) the rings
 #: shrink (the rooms' sky under a tenth of the truth: median 36% -> 11%). Yellow above a fiftieth of the sky, red
-#: above a tenth (bench/results.md, issue 22,
-#: session 27: every suite target above 0.1 scored SSIM < 0.4 (8 of the 13 such), none at SSIM >= 0.4 above 0.036).
+#: above a tenth (bench/results.md, issue 22, session 27: every suite target above 0.1 scored SSIM < 0.4, 8 of
+#: the 13 such; none at SSIM >= 0.4 is above 0.036).
 VERDICT_DARK_LEVEL = 1e-6
 VERDICT_DARK_YELLOW = 0.02
 VERDICT_DARK_RED = 0.1
