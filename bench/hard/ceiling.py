@@ -88,6 +88,12 @@ def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> li
     scene = SceneArtifact.load(work / "scene")
     if not any(_wanted(t.name, families) for t in scene.targets):
         return []
+    lost = [t.name for t in scene.targets if truth_envmap_path(cap, t.name) is None]
+    if lost:  # a later `bench.hard --only` run rewrote the capture for fewer targets than this work folder solved
+        print(f"  skipped {cap.name}: no truth for {', '.join(lost)} of {work.name}'s targets (the capture was "
+              f"rewritten since, e.g. by `bench.hard --only`): rerun `python -m bench.hard --out {cap.parent.parent}`",
+              file=sys.stderr)
+        return []
     data = load_targets(scene, work / "transport")
     rows, truths = {}, {}
     for t in scene.targets:
