@@ -88,7 +88,8 @@ def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> li
     scene = SceneArtifact.load(work / "scene")
     if not any(_wanted(t.name, families) for t in scene.targets):
         return []
-    lost = [t.name for t in scene.targets if truth_envmap_path(cap, t.name) is None]
+    truth_files = {t.name: truth_envmap_path(cap, t.name) for t in scene.targets}
+    lost = [name for name, path in truth_files.items() if path is None]
     if lost:  # a later `bench.hard --only` run rewrote the capture for fewer targets than this work folder solved
         print(f"  skipped {cap.name}: no truth for {', '.join(lost)} of {work.name}'s targets (the capture was "
               f"rewritten since, e.g. by `bench.hard --only`): rerun `python -m bench.hard --out {cap.parent.parent}`",
@@ -99,8 +100,7 @@ def capture_rows(cap: Path, work: Path, families: list[str] | None = None) -> li
     for t in scene.targets:
         d = data[t.name]
         tr = d.transport
-        truth = resample_to_height(read_latlong(truth_envmap_path(cap, t.name))[..., :3].astype(np.float64),
-                                   tr.output_height)
+        truth = resample_to_height(read_latlong(truth_files[t.name])[..., :3].astype(np.float64), tr.output_height)
         if tr.output_height != tr.env_height:
             raise ValueError(f"{work}: a supersampled A (env_height {tr.env_height}): run on a default work folder")
         truths[t.name] = truth

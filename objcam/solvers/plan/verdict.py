@@ -187,7 +187,7 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     energy = np.clip(lum, 0, None) * omega
     total = max(float(energy.sum()), 1e-300)
     mask = sol.fine[1] if sol.fine is not None else sol.mask
-    solved = np.ones(lum.size, bool) if mask is None else tr.x_from_envmap(np.asarray(mask, np.float32)).ravel() > 0
+    solved = np.ones(lum.size, bool) if mask is None else np.asarray(mask, bool).reshape(-1)[tr.texel_index]
     rec: dict = {"noise_per_fitted_pixel": sigma_rel, "noise_source": noise_source,
                  "pixels_excluded": float(1.0 - d.use.mean()),
                  "pixels_rejected": float(0.0 if sol.rejected is None else sol.rejected.sum() / max(d.use.sum(), 1)),
