@@ -68,10 +68,8 @@ class GatherSettings:
     node_shadow_rays: int = 2
     max_depth: int = 6  # Mitsuba's path depth: 2 = direct only, 3 = one bounce, ...
     max_mesh_nodes: int = 12000  # a mesh with more faces gets face clusters as nodes (voxel x normal buckets)
-    # plane support: polar grid rings per doubling of the radius, and sectors. 4 x 32, not 8 x 64: A within a fifth
-    # of a seed's change, the hard suite within its rerun noise, 0.3 s less (bench/results.md, issue 25, session 27)
-    rings_per_octave: int = 4
-    sectors: int = 32
+    rings_per_octave: int = 8  # plane support: polar grid rings per doubling of the radius
+    sectors: int = 64  # plane support: polar grid sectors
     seed: int = 0
 
 
