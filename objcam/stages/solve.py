@@ -33,7 +33,8 @@ from objcam.solvers.plan.capture import solve_capture
 from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.summary import solve_summary
 from objcam.solvers.plan.targets import TargetData, TargetSolution
-from objcam.transport import load_transport, pool_target
+from objcam.transport import load_transport
+from objcam.transport.pixels import target_rows
 from objcam.transport.storage import read_index
 
 NAME = "solve"
@@ -66,11 +67,8 @@ def load_targets(scene, transport_dir: Path) -> dict[str, TargetData]:
         if g not in by_group:
             by_group[g] = load_transport(transport_dir, target.name)
         tr = by_group[g]
-        image = target.load_image(scene.folder)
-        valid = target.load_valid(scene.folder)
-        pooled, ok = pool_target(image, valid, tr.downsample)
-        y = pooled.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
-        use = ok.reshape(-1)[tr.pixel_index]
+        pooled, ok, y, use = target_rows(target.load_image(scene.folder), target.load_valid(scene.folder),
+                                         tr.downsample, tr.pixel_index)
         if not use.any():
             raise StageError("no usable pixel sees the scene", scene.folder / target.image,
                              "check the camera pose and the valid mask")

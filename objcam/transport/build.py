@@ -26,6 +26,8 @@ class BuildSettings:
     object_samples: int = 16
     object_subpixel_samples: int = 256
     refine: bool = True
+    texel_kernel: float = 1.0  # shadow rays into the texel's central fraction per side (objcam.transport.kernel)
+    auto_choice: str | None = None  # model=auto: take this choice ("direct" or "direct+indirect"), not measure it
     downsample: int = 1
     seed: int = 0
     use_valid: bool = True
@@ -133,7 +135,8 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
             metrics.update({"object_pixels": int(rows_o.size), "object_samples": k_o,
                             "object_subpixel_samples": n_o})
         dm = SplitDirect([(rows, DirectModel(geo, ps, s.env_height, channels, rays=kk, seed=s.seed,
-                                             batch_rays=s.batch_rays, refine=s.refine, image_shape=(hp, wp)))
+                                             batch_rays=s.batch_rays, refine=s.refine, image_shape=(hp, wp),
+                                             kernel=s.texel_kernel))
                           for (rows, ps), kk in zip(parts.parts, rays) if rows.size], m)
         rows_per = max(1, s.pair_budget // max(1, m * grid.width))
         blocks = [np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
@@ -182,17 +185,22 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
         # the columns in the order farthest-point sampling picked them (every prefix spread over the sphere), each
         # seeded by its rank among them, so a full measurement is the one the sorted columns gave; the direct
         # light of a column is computed only when it is measured (measure stops once the choice is clear)
-        pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height, spread_order=True)
-        unknown = parts.unknown_albedo()
-        rep = measure(pr, dm.columns, texel_index[pos], s.auto_spp, s.auto_max_depth, s.seed,
-                      s.correction_scale, noise, source, pins=~unknown if unknown.any() else None,
-                      seeds=np.argsort(np.argsort(pos)), stop_margin=AUTO_STOP_MARGIN)
-        metrics.update(rep.metrics())
-        chosen = rep.choice
+        if s.auto_choice is None:
+            pos = choose_columns(texel_index, writer.column_norms, s.auto_columns, s.env_height,
+                                 spread_order=True)
+            unknown = parts.unknown_albedo()
+            rep = measure(pr, dm.columns, texel_index[pos], s.auto_spp, s.auto_max_depth, s.seed,
+                          s.correction_scale, noise, source, pins=~unknown if unknown.any() else None,
+                          seeds=np.argsort(np.argsort(pos)), stop_margin=AUTO_STOP_MARGIN)
+            metrics.update(rep.metrics())
+            chosen = rep.choice
+        else:  # decided on another A of the same scene (objcam.transport.kernel's second kernel)
+            chosen = s.auto_choice
+            metrics["auto_choice_given"] = chosen
         cpu.lap("auto_measure")
         if pr.column_offset:
             metrics["mitsuba_envmap_column_offset"] = pr.column_offset
-        if rep.choice != "direct":
+        if chosen != "direct":
             t1 = time.perf_counter()
             writer.flush()
             if s.indirect == "gather":

@@ -27,6 +27,10 @@ centre direction and angular radius; the pixel's samples: their normal cone and 
   all escape or all are blocked takes that verdict for its other rays, which then only sum their cosines (no
   shadow test). On the demo the object's 256-ray pairs trace 40% fewer rays, A unchanged within its noise.
 
+``kernel`` < 1 aims the shadow rays into the texel's central fraction per side (the same random numbers mapped
+there): sharper columns for sources smaller than a texel (objcam.transport.kernel); the analytic pairs' exact
+integral is the whole texel's either way.
+
 Deterministic: every random number comes from the seed (per-pixel shifts) or a hash of (pixel, texel, seed).
 """
 
@@ -168,13 +172,14 @@ class DirectModel:
 
     def __init__(self, geo: SceneGeometry, samples: PixelSamples, env_height: int, channels: int, rays: int = 4,
                  seed: int = 0, batch_rays: int = 1 << 24, cull: bool = True, refine: bool = True,
-                 image_shape: tuple[int, int] | None = None, prefix: int | None = None):
+                 image_shape: tuple[int, int] | None = None, prefix: int | None = None, kernel: float = 1.0):
         self.geo, self.s, self.c = geo, samples, int(channels)
         self.tab = TexelTable.of(env_height)
         self.seed = int(seed)
         self.batch_rays = int(batch_rays)
         self.cull = cull
         self.refine = refine
+        self.kernel = float(kernel)
         if image_shape is None:  # enough to hold every pixel index (neighbours then follow the flat index)
             n = int(samples.pixel_index.max()) + 1 if samples.pixel_index.size else 1
             image_shape = (1, n)
@@ -455,6 +460,8 @@ class DirectModel:
         nrm = s.normal.reshape(-1, 3).astype(np.float32)
         lat = sobol4(self.n_sub)  # ray i of round r pairs sub-pixel sample r K + i with direction point r K + i
         rho = s.rho.reshape(-1, 3).astype(np.float32)
+        tc, half = 0.5 * (tab.theta0 + tab.theta1), 0.5 * self.kernel * (tab.theta1 - tab.theta0)
+        t0, t1 = tc - half, tc + half
         d = {
             "P": mi.Point3f(*(padded(pos[:, i]) for i in range(3))),
             "N": mi.Vector3f(*(padded(nrm[:, i]) for i in range(3))),
@@ -462,8 +469,8 @@ class DirectModel:
             "G": mi.UInt32(padded(s.pixel_index, np.uint32)),
             "LU": mi.UInt32(padded(lat[:, 2])),
             "LV": mi.UInt32(padded(lat[:, 3])),
-            "CT": mi.Float(padded(np.cos(tab.theta0), np.float32)),
-            "CB": mi.Float(padded(np.cos(tab.theta1), np.float32)),
+            "CT": mi.Float(padded(np.cos(t0), np.float32)),
+            "CB": mi.Float(padded(np.cos(t1), np.float32)),
             "OM": mi.Float(padded(tab.omega_row / (np.pi * self.k), np.float32)),
         }
         if self.c == 1:
@@ -555,7 +562,7 @@ class DirectModel:
                    + mi.UInt64(dr.opaque(mi.UInt32, _seed_mix(self.seed) ^ (0x5BD1E995 * salt & 0xFFFFFFFF))))
             H1, H2 = _hash_u32_dr(key), _hash_u32_dr(key + 0x632BE59B)
             row = ta // w_env
-            col = mi.Float(ta - row * w_env)
+            col = mi.Float(ta - row * w_env) + 0.5 * (1.0 - self.kernel)
             base = pa * n_sub + sub0
             ct = dr.gather(mi.Float, d["CT"], row)
             dc = dr.gather(mi.Float, d["CB"], row) - ct
@@ -571,7 +578,7 @@ class DirectModel:
                 v = (mi.Float((dr.gather(mi.UInt32, d["LV"], sub) ^ H2) >> 8) + 0.5) * inv24
                 cos_t = ct + dc * u
                 sin_t = dr.safe_sqrt(1.0 - cos_t * cos_t)
-                sp, cp = dr.sincos((col + v) * two_pi_w)
+                sp, cp = dr.sincos((col + self.kernel * v) * two_pi_w)
                 w = mi.Vector3f(cp * sin_t, sp * sin_t, cos_t)
                 cosw = dr.dot(n, w)
                 active = hit & (cosw > 0)

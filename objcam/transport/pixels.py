@@ -43,6 +43,15 @@ def pool_target(image: np.ndarray, valid: np.ndarray, f: int) -> tuple[np.ndarra
     return mean.astype(np.float32), vblock
 
 
+def target_rows(image: np.ndarray, valid: np.ndarray, f: int,
+                pixel_index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A target photo at A's rows: (pooled (H', W', 3), pooled_ok (H', W') bool, y (M, 3) float64, use (M,) bool),
+    the pooled image and its usable pixels (:func:`pool_target`) and both at the kept pixels ``pixel_index``."""
+    pooled, ok = pool_target(image, valid, f)
+    y = pooled.reshape(-1, 3)[pixel_index].astype(np.float64)
+    return pooled, ok, y, ok.reshape(-1)[pixel_index]
+
+
 def pool_mask_any(mask: np.ndarray, f: int) -> np.ndarray:
     """(H // f, W // f) True where any pixel of the block is set."""
     hp, wp = pooled_shape(mask.shape[0], mask.shape[1], f)
