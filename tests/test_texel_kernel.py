@@ -64,7 +64,7 @@ def test_a_narrow_kernel_sharpens_shadows_and_keeps_the_unshadowed_light(models)
     assert np.allclose(A[plane[far]], B[plane[far]], rtol=1e-5, atol=1e-9)
 
 
-def test_auto_gives_each_target_the_kernel_its_fit_prefers(tmp_path):
+def test_fit_gives_each_target_the_kernel_its_fit_prefers(tmp_path):
     """Two targets of one camera: the sphere's photo made through the narrow A from a lamp at a texel's centre,
     and through the box A from a smooth sky. auto builds both A's (the narrow one exactly texel_kernel=0.25's),
     solves each target on both and keeps per target the lower chi2: narrow for the lamp, box for the sky
@@ -86,23 +86,44 @@ def test_auto_gives_each_target_the_kernel_its_fit_prefers(tmp_path):
         img = tr.predict(np.repeat(env[tr.texel_index, None], 3, axis=1))
         img = img * (1 + 0.002 * rng.standard_normal(img.shape))
         write_exr(folder / "targets" / name / "image.exr", img.astype(np.float32))
-    m = _run(folder, tmp_path / "auto", model="direct", texel_kernel="auto")
-    rec = m["texel_kernel_auto"]
+    m = _run(folder, tmp_path / "auto", model="direct", texel_kernel="fit")
+    rec = m["texel_kernel_auto"]["targets"]
     assert rec["t0"]["kernel"] == NARROW and rec["t0"]["chi2_narrow"] < rec["t0"]["chi2_box"]
     assert rec["t1"]["kernel"] == 1.0 and rec["t1"]["chi2_box"] < rec["t1"]["chi2_narrow"]
     index = json.loads((tmp_path / "auto" / "index.json").read_text())
     assert index["targets"] == {"t0": "cam0k", "t1": "cam0"}
     assert np.array_equal(load_transport(tmp_path / "auto", "t0").A, tn.A)  # the same seeds: the same columns
     assert np.array_equal(load_transport(tmp_path / "auto", "t1").A, tb.A)
+    # auto (the default): only the lamp's box solve leaves black sky (measured: 94% of it; the sky's 0), so only
+    # it is solved on the narrow A, and takes it
+    ma = _run(folder, tmp_path / "auto2", model="direct")
+    rec = ma["texel_kernel_auto"]["targets"]
+    assert rec["t0"]["dark_sky_area_box"] > 0.5 and rec["t0"]["kernel"] == NARROW
+    assert rec["t1"]["dark_sky_area_box"] < 0.02 and rec["t1"]["kernel"] == 1.0 and "chi2_narrow" not in rec["t1"]
+    assert json.loads((tmp_path / "auto2" / "index.json").read_text())["targets"] == {"t0": "cam0k", "t1": "cam0"}
 
 
-def test_auto_drops_an_A_no_target_took_and_refuses_what_it_does_not_build(tmp_path):
+def test_fit_drops_an_A_no_target_took_and_refuses_what_it_does_not_build(tmp_path):
     from objcam.errors import StageError
 
     folder = tmp_path / "scene"
     _write_artifact(folder, cams=1, noise=0.002)  # a flat grey photo: whichever fits, one A is left
-    m = _run(folder, tmp_path / "auto", model="direct", texel_kernel="auto")
+    # auto on a smooth sky's photo: nothing black, no second A built
+    _run(folder, tmp_path / "box", model="direct", texel_kernel=1.0)
+    tb = load_transport(tmp_path / "box", "t0")
+    d = EnvGrid(ENV_H).directions().reshape(-1, 3)
+    img = tb.predict(np.repeat(np.where(d[:, 2] > 0, 1.0 + 0.5 * d[:, 0], 0.0)[tb.texel_index, None], 3, axis=1))
+    sky = tmp_path / "sky"
+    _write_artifact(sky, cams=1, noise=0.002)
+    from objcam.image_io import write_exr
+
+    write_exr(sky / "targets" / "t0" / "image.exr", img.astype(np.float32))
+    m = _run(sky, tmp_path / "default", model="direct")
+    assert m["texel_kernel_auto"]["targets"]["t0"]["dark_sky_area_box"] < 0.02 and "seconds_narrow" not in m
+    assert sorted(p.name for p in (tmp_path / "default").iterdir() if p.is_dir()) == ["cam0"]
+    m = _run(folder, tmp_path / "auto", model="direct", texel_kernel="fit")
     kept = sorted(p.name for p in (tmp_path / "auto").iterdir() if p.is_dir())
-    assert len(kept) == 1 and kept[0] == ("cam0k" if m["texel_kernel_auto"]["t0"]["kernel"] < 1 else "cam0")
-    with pytest.raises(StageError, match="texel_kernel=auto"):
-        _run(folder, tmp_path / "ss", model="direct", texel_kernel="auto", supersample=2)
+    assert len(kept) == 1 and kept[0] == ("cam0k" if m["texel_kernel_auto"]["targets"]["t0"]["kernel"] < 1
+                                          else "cam0")
+    with pytest.raises(StageError, match="texel_kernel=fit"):
+        _run(folder, tmp_path / "ss", model="direct", texel_kernel="fit", supersample=2)

@@ -47,10 +47,11 @@ class Params(BaseModel):
     object_samples: int = Field(16, ge=1, description="direct: K for the pixels that see the object")
     object_subpixel_samples: int = Field(256, ge=1, description="direct: S for the pixels that see the object "
                                          "(their faceted normals and silhouette vary inside the pixel)")
-    texel_kernel: Annotated[float, Field(gt=0, le=1)] | Literal["auto"] = Field(
-        1.0, description="direct: the shadow rays aim into this central fraction of each texel per side (1: box "
-        "texels); 'auto': each target solved on box texels and on a narrow kernel (0.25) and given the A whose fit "
-        "is better (objcam.transport.kernel; builds A twice)")
+    texel_kernel: Annotated[float, Field(gt=0, le=1)] | Literal["auto", "fit"] = Field(
+        "auto", description="direct: the shadow rays aim into this central fraction of each texel per side (1: box "
+        "texels); 'fit': every target solved on box texels and on a narrow kernel (0.25) and given the A whose fit "
+        "is better (builds A twice); 'auto': box texels, and 'fit' for the targets whose box solve leaves black "
+        "sky (objcam.transport.kernel)")
     refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
     downsample: int | Literal["auto"] = Field("auto", description="pool f x f pixel blocks (pool the target with "
                                               "pool_target); 'auto': the smallest f that leaves at most max_pixels "
@@ -109,10 +110,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         raise StageError("transport.supersample > 1 is solved only with a known albedo, and this capture leaves "
                          "the " + ("object's" if not desc.albedo_object.known else "support's") + " albedo unknown",
                          inputs.capture / "capture.toml", "set transport.supersample=1")
-    if params.texel_kernel == "auto" and (params.supersample > 1 or params.env_height == "auto"
-                                          or params.model == "path"):
-        raise StageError("transport.texel_kernel=auto is built for a fixed env_height, supersample 1 and the direct "
-                         "or auto model", inputs.capture / "capture.toml", "set transport.texel_kernel=1")
+    if params.texel_kernel == "fit" and (params.supersample > 1 or params.env_height == "auto"
+                                         or params.model == "path"):
+        raise StageError("transport.texel_kernel=fit is built for a fixed env_height, supersample 1 and the direct "
+                         "or auto model", inputs.capture / "capture.toml", "set transport.texel_kernel=auto")
     choice = None
     if params.env_height == "auto":
         from objcam.transport.resolution import choose_height
@@ -159,9 +160,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                f"in {metrics['seconds_total']:.1f} s")
     if choice is not None:
         summary += f"; env_height auto -> {height}: {choice['reason']}"
-    kernels = [r["kernel"] for m in per_cam for r in m.get("texel_kernel_auto", {}).values()]
-    if kernels:
-        summary += f"; texel kernel auto: {sum(k < 1 for k in kernels)} of {len(kernels)} target(s) narrow"
+    narrow = [n for m in per_cam for n, r in m.get("texel_kernel_auto", {}).get("targets", {}).items()
+              if r["kernel"] < 1]
+    if narrow:
+        summary += f"; narrow texel kernel (black sky on box texels) for {', '.join(narrow)}"
     return StageOutputs(metrics=metrics, summary=summary)
 
 
@@ -212,11 +214,14 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
         sub = f"cam{i}"
         valids = [t.load_valid(art.folder) for t in targets]
         f = downsample_for(targets[0].camera, params)
-        auto_kernel = params.texel_kernel == "auto"
+        # texel_kernel auto / fit (objcam.transport.kernel); auto is box texels where it does not apply
+        by_fit = params.texel_kernel == "fit" or (params.texel_kernel == "auto" and params.supersample == 1
+                                                   and params.model != "path" and params.env_height != "auto")
         settings = BuildSettings(**(params.model_dump(exclude={"max_pixels", "supersample", "variant",
                                                                "env_height_candidates", "env_height_max_seconds"})
                                     | {"downsample": f, "env_height": fine_height, "output_height": height,
-                                       "texel_kernel": 1.0 if auto_kernel else params.texel_kernel}))
+                                       "texel_kernel": 1.0 if isinstance(params.texel_kernel, str)
+                                       else params.texel_kernel}))
         noise = (_target_noise(art.folder, targets, f, estimate_relative_noise)
                  if params.model == "auto" else None)
         m = build_camera(geo, targets[0].camera, out / sub, settings, valids=valids,
@@ -224,37 +229,13 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
         m["gram_seconds"] = round(current().write_gram(out / sub), 3)  # objcam.transport.engine
         m.update(current().metrics())
         per_cam.append(m)
-        if auto_kernel:
-            m.update(_choose_kernel(inputs, art, geo, targets, out, sub, settings, valids, noise, m, mapping))
-        else:
-            mapping.update({t.name: sub for t in targets})
+        mapping.update({t.name: sub for t in targets})
+        if by_fit:
+            from objcam.transport.kernel import for_camera
+
+            m.update(for_camera(art, geo, targets, out, sub, settings, valids, noise, m.get("model"), mapping,
+                                params.texel_kernel, inputs.capture))
     return per_cam, mapping, planned
-
-
-def _choose_kernel(inputs: StageInputs, art, geo, targets: list, out, sub: str, settings, valids, noise, m: dict,
-                   mapping: dict) -> dict:
-    """texel_kernel=auto: build the narrow kernel's A beside the box's (``sub`` + "k", the same seeds and model
-    choice), give each target the one its default solve fits better (objcam.transport.kernel), drop an A no
-    target took. Updates ``mapping``; returns the camera's metrics."""
-    import dataclasses
-    import shutil
-
-    from objcam.transport import kernel
-    from objcam.transport.build import build_camera
-    from objcam.transport.engine import current
-
-    narrow = dataclasses.replace(settings, texel_kernel=kernel.NARROW,
-                                 auto_choice=m.get("model") if settings.model == "auto" else None)
-    mk = build_camera(geo, targets[0].camera, out / (sub + "k"), narrow, valids=valids,
-                      targets=[t.name for t in targets], target_noise=noise)
-    current().write_gram(out / (sub + "k"))
-    joint = not (art.description.albedo_object.known and art.description.albedo_support.known)
-    pick, rec = kernel.choose(art, targets, out / sub, out / (sub + "k"), joint, inputs.capture)
-    mapping.update(pick)
-    for s in (sub, sub + "k"):
-        if s not in pick.values():
-            shutil.rmtree(out / s)
-    return {"texel_kernel_auto": rec, "seconds_narrow": mk.get("seconds")}
 
 
 def downsample_for(camera, params: Params) -> int:
