@@ -19,8 +19,9 @@ Monte Carlo noise. A target whose albedo is unknown shares its camera's A with t
 (the joint solve ties them by the albedo), so there the camera chooses, by the chi-squared summed over its
 targets. Measured on the hard suite (bench/results.md, issue 22, session 28), against box texels alone: ``fit``
 median SSIM 0.777 -> 0.789, the worst 0.002 -> 0.288, 39 targets better and 9 worse (by 0.098 at most), but on
-the core bench's 0.1%-noise captures forest and courtyard lose 0.01-0.02; ``auto`` changes 10 of 96 targets (the
-worst 0.002 -> 0.29, rooms median 0.327 -> 0.426; 7 better, 1 worse) and no core bench or demo target.
+the core bench's 0.1%-noise captures forest and courtyard lose 0.01-0.02; ``auto`` gives 8 of 96 targets the narrow
+A, all rooms (the worst 0.002 -> 0.290, rooms median 0.327 -> 0.426; 6 better, 2 worse by 0.098 and 0.010) and no
+core bench or demo target (their box solves leave no black sky).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from objcam.solvers.plan.defaults import VERDICT_DARK_YELLOW
 NARROW = 0.25
 #: ``auto`` builds the narrow A only where the box A's solve left more of the sky black than this (the verdict's
 #: yellow line, objcam.solvers.plan.defaults.VERDICT_DARK_YELLOW): on the hard suite 10 of 96 targets, all
-#: rooms or frames under lamps; no core bench or demo target
+#: rooms; no core bench or demo target
 DARK_TRIGGER = VERDICT_DARK_YELLOW
 
 
