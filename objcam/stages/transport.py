@@ -51,7 +51,7 @@ class Params(BaseModel):
         "auto", description="direct: the shadow rays aim into this central fraction of each texel per side (1: box "
         "texels); 'fit': every target solved on box texels and on a narrow kernel (0.25) and given the A whose fit "
         "is better (builds A twice); 'auto': box texels, and 'fit' for the targets whose box solve leaves black "
-        "sky (objcam.transport.kernel)")
+        "sky, up to 64 rows (objcam.transport.kernel)")
     refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
     downsample: int | Literal["auto"] = Field("auto", description="pool f x f pixel blocks (pool the target with "
                                               "pool_target); 'auto': the smallest f that leaves at most max_pixels "
@@ -167,6 +167,11 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     return StageOutputs(metrics=metrics, summary=summary)
 
 
+#: texel_kernel=auto asks the fit up to this envmap height: at 128 rows a box texel (1.4 deg) is already smaller
+#: than a lamp of 2 deg, and a pilot solve there takes minutes
+AUTO_MAX_HEIGHT = 64
+
+
 def _estimates(params: Params, art, groups: list[list], height: int) -> list[dict]:
     """objcam.transport.budget's estimate per camera for envmap ``height`` (A on height x supersample rows)."""
     from objcam.transport import budget
@@ -216,7 +221,8 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
         f = downsample_for(targets[0].camera, params)
         # texel_kernel auto / fit (objcam.transport.kernel); auto is box texels where it does not apply
         by_fit = params.texel_kernel == "fit" or (params.texel_kernel == "auto" and params.supersample == 1
-                                                   and params.model != "path" and params.env_height != "auto")
+                                                   and params.model != "path" and params.env_height != "auto"
+                                                   and height <= AUTO_MAX_HEIGHT)
         settings = BuildSettings(**(params.model_dump(exclude={"max_pixels", "supersample", "variant",
                                                                "env_height_candidates", "env_height_max_seconds"})
                                     | {"downsample": f, "env_height": fine_height, "output_height": height,
