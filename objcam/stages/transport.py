@@ -49,9 +49,9 @@ class Params(BaseModel):
                                          "(their faceted normals and silhouette vary inside the pixel)")
     texel_kernel: Annotated[float, Field(gt=0, le=1)] | Literal["auto", "fit"] = Field(
         "auto", description="direct: the shadow rays aim into this central fraction of each texel per side (1: box "
-        "texels); 'fit': every target solved on box texels and on a narrow kernel (0.25) and given the A whose fit "
-        "is better (builds A twice); 'auto': box texels, and 'fit' for the targets whose box solve leaves black "
-        "sky, up to 64 rows (objcam.transport.kernel)")
+        "texels). 'auto': box texels; each target solved on them, then on A with narrow (0.25) columns at the "
+        "solve's compact bright blobs and, where the solve left black sky, on a whole narrow A, keeping the lowest "
+        "chi2 (up to 64 rows); 'fit': the whole narrow A for every target (objcam.transport.kernel)")
     refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
     downsample: int | Literal["auto"] = Field("auto", description="pool f x f pixel blocks (pool the target with "
                                               "pool_target); 'auto': the smallest f that leaves at most max_pixels "
@@ -160,10 +160,11 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                f"in {metrics['seconds_total']:.1f} s")
     if choice is not None:
         summary += f"; env_height auto -> {height}: {choice['reason']}"
-    narrow = [n for m in per_cam for n, r in m.get("texel_kernel_auto", {}).get("targets", {}).items()
-              if r["kernel"] < 1]
-    if narrow:
-        summary += f"; narrow texel kernel (black sky on box texels) for {', '.join(narrow)}"
+    for kind, why in (("narrow", "black sky on box texels"), ("compact", "at compact sources")):
+        names = [n for m in per_cam for n, r in m.get("texel_kernel_auto", {}).get("targets", {}).items()
+                 if r["kernel"] == kind]
+        if names:
+            summary += f"; {kind} texel kernel ({why}) for {', '.join(names)}"
     return StageOutputs(metrics=metrics, summary=summary)
 
 
@@ -230,8 +231,9 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
                                        else params.texel_kernel}))
         noise = (_target_noise(art.folder, targets, f, estimate_relative_noise)
                  if params.model == "auto" else None)
+        kept: dict = {}
         m = build_camera(geo, targets[0].camera, out / sub, settings, valids=valids,
-                         targets=[t.name for t in targets], target_noise=noise)
+                         targets=[t.name for t in targets], target_noise=noise, hold=kept)
         m["gram_seconds"] = round(current().write_gram(out / sub), 3)  # objcam.transport.engine
         m.update(current().metrics())
         per_cam.append(m)
@@ -239,8 +241,8 @@ def _build_height(inputs: StageInputs, params: Params, art, groups: list[list], 
         if by_fit:
             from objcam.transport.kernel import for_camera
 
-            m.update(for_camera(art, geo, targets, out, sub, settings, valids, noise, m.get("model"), mapping,
-                                params.texel_kernel, inputs.capture))
+            m.update(for_camera(art, geo, targets, out, sub, settings, valids, noise, m.get("model"),
+                                kept.get("direct"), mapping, params.texel_kernel, inputs.capture))
     return per_cam, mapping, planned
 
 

@@ -81,11 +81,12 @@ def candidate_pixels(camera: Camera, f: int, valids: list[np.ndarray] | None) ->
 
 def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSettings, *,
                  valids: list[np.ndarray] | None = None, targets: list[str] | None = None,
-                 target_noise: tuple[float, str] | None = None) -> dict:
+                 target_noise: tuple[float, str] | None = None, hold: dict | None = None) -> dict:
     """Compute A for ``camera`` into the zarr group ``folder``; returns the metrics.
 
     valids: the targets' (H, W) valid masks (pixels invalid in all of them are not computed).
     target_noise: (relative noise, where it came from) for model=auto; default 1% ("assumed").
+    hold: a dict that receives the direct-light model as "direct" (objcam.transport.kernel recomputes columns).
     """
     from objcam.transport.engine import current
 
@@ -138,6 +139,8 @@ def build_camera(geo: SceneGeometry, camera: Camera, folder: Path, s: BuildSetti
                                              batch_rays=s.batch_rays, refine=s.refine, image_shape=(hp, wp),
                                              kernel=s.texel_kernel))
                           for (rows, ps), kk in zip(parts.parts, rays) if rows.size], m)
+        if hold is not None:
+            hold["direct"] = dm
         rows_per = max(1, s.pair_budget // max(1, m * grid.width))
         blocks = [np.arange(r0 * grid.width, min(grid.height, r0 + rows_per) * grid.width)
                   for r0 in range(0, grid.height, rows_per)]

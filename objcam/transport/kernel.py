@@ -9,19 +9,22 @@ central ``NARROW`` of the texel per side) gives sharp columns; a compact source 
 a non-negative mix of two of them. But under an extended source (a window, an overcast sky) seen past a thin
 occluder, narrow columns alias: the sum of sharp shadows is a comb where the photo holds a smooth penumbra.
 
-Neither is right for every sky, and the sky is what the solve finds. ``fit`` solves every target on both A's (the
-default solve, objcam.solvers.plan.solve_capture) and keeps the A whose fit leaves the lower chi-squared per
-fitted value (the verdict's ``chi2``: the residual against the stated noise). ``auto`` (the default) solves each
-target on the box A and builds the narrow A only for a camera where a target's solve left black sky (its
-``dark_sky_area`` above ``DARK_TRIGGER``): those targets then take the lower chi2. Both A's come from the same seeds
-(the narrow directions are the box's mapped into the texel's centre), so their difference is the kernel, not
-Monte Carlo noise. A target whose albedo is unknown shares its camera's A with the other targets of that camera
-(the joint solve ties them by the albedo), so there the camera chooses, by the chi-squared summed over its
-targets. Measured on the hard suite (bench/results.md, issue 22, session 28), against box texels alone: ``fit``
-median SSIM 0.777 -> 0.789, the worst 0.002 -> 0.288, 39 targets better and 9 worse (by 0.098 at most), but on
-the core bench's 0.1%-noise captures forest and courtyard lose 0.01-0.02; ``auto`` gives 8 of 96 targets the narrow
-A, all rooms (the worst 0.002 -> 0.290, rooms median 0.327 -> 0.426; 6 better, 2 worse by 0.098 and 0.010) and no
-core bench or demo target (their box solves leave no black sky).
+Neither is right for every sky, and the sky is what the solve finds. So the transport stage solves each target on
+the box A (the default solve, objcam.solvers.plan.solve_capture, with its verdict) and tries candidates, each
+target keeping the one whose fit leaves the lowest chi-squared per fitted value (the verdict's ``chi2``: the
+residual against the stated noise):
+
+* ``compact``: the box A with narrow columns at the solve's compact bright blobs only (a lamp, a sun: at most
+  ``COMPACT_TEXELS`` texels above ``COMPACT_LEVEL`` x the sky's median, grown by one texel), the rest box texels:
+  the narrow and box direct light of those few texels from the box build's own direct model, the indirect part
+  kept; cheap (the demo: 24 texels, ~0.5 s);
+* ``narrow``: the whole A with the narrow kernel (a second build: the same seeds, so the difference is the kernel,
+  not Monte Carlo noise), for the targets whose box solve left more than ``DARK_TRIGGER`` of the sky black
+  (``auto``, the default) or for every target (``fit``).
+
+A target whose albedo is unknown shares its camera's A with the other targets of that camera (the joint solve
+ties them by the albedo), so there the camera chooses, by the chi-squared summed over its targets. Measured on the
+hard suite and the core bench's capture: bench/results.md, issue 22, session 28.
 """
 
 from __future__ import annotations
@@ -41,16 +44,23 @@ NARROW = 0.25
 DARK_TRIGGER = VERDICT_DARK_YELLOW
 
 
-def pilot(scene, targets: list, folder: Path, capture: Path) -> dict[str, dict]:
-    """{target: {"chi2", "values", "dark_sky_area"}} of the default solve of ``targets`` on the A in ``folder``
-    (the verdict's chi2 per fitted value and its share of black sky, objcam.solvers.plan.verdict)."""
+#: ``compact``: a blob is the 8-connected texels above COMPACT_LEVEL x the solved sky's median luminance, compact
+#: when it has at most COMPACT_TEXELS texels at 32 rows (x (H / 32)^2 on finer grids): a lamp or a sun smeared by
+#: the box solve, not a window or an overcast sun area (the suite's windows, courtyard's sun: 150+ texels)
+COMPACT_LEVEL = 10.0
+COMPACT_TEXELS = 9
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
+    """{target: {"chi2", "values", "dark_sky_area", "envmap", "mask"}} of the default solve of ``targets`` on
+    the Transport ``tr`` (the verdict's chi2 per fitted value and its share of black sky,
+    objcam.solvers.plan.verdict; the solved (H, W, 3) envmap and its (H, W) mask)."""
     from objcam.solvers.plan.capture import solve_capture
     from objcam.solvers.plan.params import SolveParams
     from objcam.solvers.plan.targets import TargetData
     from objcam.transport.pixels import target_rows
-    from objcam.transport.storage import load_group
 
-    tr = load_group(folder)
     data = {t.name: TargetData(tr, *target_rows(t.load_image(scene.folder), t.load_valid(scene.folder),
                                                 tr.downsample, tr.pixel_index)) for t in targets}
     sols = solve_capture(scene.model_copy(update={"targets": list(targets)}), data, SolveParams(), capture)
@@ -58,7 +68,8 @@ def pilot(scene, targets: list, folder: Path, capture: Path) -> dict[str, dict]:
     for t in targets:
         v = sols[t.name].info.get("verdict", {})
         out[t.name] = {"chi2": float(v.get("chi2", np.inf)), "values": int(data[t.name].use.sum()) * 3,
-                       "dark_sky_area": float(v.get("dark_sky_area", 0.0))}
+                       "dark_sky_area": float(v.get("dark_sky_area", 0.0)), "envmap": sols[t.name].envmap,
+                       "mask": sols[t.name].mask}
     return out
 
 
@@ -67,58 +78,123 @@ def triggered(box: dict[str, dict]) -> list[str]:
     return [name for name, p in box.items() if p["dark_sky_area"] > DARK_TRIGGER]
 
 
-def choose(box: dict[str, dict], narrow: dict[str, dict], names: list[str], joint: bool) -> dict[str, dict]:
-    """Per target of one camera (pilot results on both A's), {"chi2_box", "chi2_narrow", "kernel"}: the narrow
-    kernel where its chi2 is lower, for the targets ``names`` (the rest keep box texels).
+def compact_blobs(envmap: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the compact bright blobs of a solved envmap (H, W, 3) on its solved texels ``mask`` (H, W),
+    grown by one texel (a lamp straddles texels); azimuth wraps."""
+    from scipy.ndimage import binary_dilation, label
 
-    joint: the targets' albedo is unknown: one choice for the camera, by the chi2 summed over its targets.
-    """
-    rec = {n: {"chi2_box": round(box[n]["chi2"], 5), "dark_sky_area_box": round(box[n]["dark_sky_area"], 5),
-               "kernel": 1.0} for n in box}
-    for n in narrow:
-        rec[n]["chi2_narrow"] = round(narrow[n]["chi2"], 5)
+    h, w = mask.shape
+    lum = np.where(mask, np.asarray(envmap, np.float64) @ _LUMA, 0.0)
+    lit = lum[mask & (lum > 0)]
+    if lit.size == 0:
+        return np.zeros((h, w), bool)
+    bright = lum > COMPACT_LEVEL * float(np.median(lit))
+    empty = np.flatnonzero(~bright.any(axis=0))
+    if empty.size == 0:  # bright all around the horizon: no compact source to find
+        return np.zeros((h, w), bool)
+    shift = -int(empty[0])  # put a column without bright texels at the seam, so no blob is cut by it
+    lab, n = label(np.roll(bright, shift, axis=1), structure=np.ones((3, 3), bool))
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    keep = np.zeros(n + 1, bool)
+    keep[1:] = sizes[1:] <= COMPACT_TEXELS * max(1.0, (h / 32) ** 2)
+    blobs = np.roll(keep[lab], -shift, axis=1)
+    grown = binary_dilation(np.concatenate([blobs[:, -1:], blobs, blobs[:, :1]], axis=1),
+                            structure=np.ones((3, 3), bool))[:, 1:-1]
+    return grown & mask
+
+
+def compact_transport(tr, direct, texels: np.ndarray):
+    """A copy of the box Transport ``tr`` whose columns of the grid texels ``texels`` are the narrow kernel's
+    direct light (plus the box A's indirect part, which the kernel does not change), with its Gram matrix updated;
+    ``direct``: the box A's direct-light model (objcam.transport.direct.SplitDirect). Returns (Transport, the
+    changed columns' positions)."""
+    import copy
+    import dataclasses
+
+    from objcam.transport.direct import DirectStats, SplitDirect
+
+    pos = np.flatnonzero(np.isin(tr.texel_index, texels))
+    tex = tr.texel_index[pos]
+
+    def narrowed(dm):
+        c = copy.copy(dm)
+        c.kernel, c._dr, c.stats = NARROW, None, DirectStats()
+        return c
+
+    narrow = SplitDirect([(rows, narrowed(dm)) for rows, dm in direct.parts], direct.m)
+    A = tr.A.copy()
+    A[:, :, pos] += narrow.columns(tex) - direct.columns(tex)
+    G = np.array(tr.gram(), np.float64)
+    for c in range(A.shape[0]):
+        cols = A[c].T.astype(np.float64) @ A[c][:, pos].astype(np.float64)  # (N, B)
+        G[c][:, pos] = cols
+        G[c][pos, :] = cols.T
+    out = dataclasses.replace(tr, A=A)
+    out._gram = G
+    return out, pos
+
+
+def pick(results: dict[str, dict[str, dict]], names: list[str], joint: bool) -> dict[str, str]:
+    """{target: candidate} with the lowest chi2 among the candidates (``results``: candidate -> target -> pilot
+    result; "box" holds every target). joint: one candidate for all ``names``, by the chi2 summed over them,
+    among the candidates solved for all of them."""
     if joint:
-        sb = sum(box[n]["chi2"] * box[n]["values"] for n in narrow)
-        sn = sum(narrow[n]["chi2"] * narrow[n]["values"] for n in narrow)
-        take = list(narrow) if sn < sb else []
-    else:
-        take = [n for n in names if narrow[n]["chi2"] < box[n]["chi2"]]
-    for n in take:
-        rec[n]["kernel"] = NARROW
-    return rec
+        full = [c for c, r in results.items() if all(n in r for n in names)]
+        best = min(full, key=lambda c: sum(results[c][n]["chi2"] * results[c][n]["values"] for n in names))
+        return {n: best for n in names}
+    return {n: min((c for c in results if n in results[c]), key=lambda c: results[c][n]["chi2"]) for n in names}
 
 
 def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, noise, model_choice: str | None,
-               mapping: dict[str, str], mode: str, capture: Path) -> dict:
-    """The transport stage's ``auto`` / ``fit`` for one camera whose box A is built in ``out / sub``: solve its
-    targets on it; where ``mode`` asks, build the narrow kernel's A beside it (``sub`` + "k": the same settings,
-    seeds and auto model choice ``model_choice``), give each target the A its fit prefers (``mapping``: target ->
-    group, updated) and delete an A no target took. Returns the camera's metrics (``texel_kernel_auto``)."""
+               direct, mapping: dict[str, str], mode: str, capture: Path) -> dict:
+    """The transport stage's ``auto`` / ``fit`` for one camera whose box A is built in ``out / sub`` with the
+    direct-light model ``direct``: solve its targets on it, then on the candidates ``mode`` asks for: the narrow
+    kernel's A (``sub`` + "k": the same settings, seeds and auto model choice ``model_choice``; ``fit``, or
+    ``auto`` where the box solve left black sky) and the box A with narrow columns at the solves' compact bright
+    blobs (``sub`` + "c"); give each target the candidate with the lowest chi2 (``mapping``: target -> group,
+    updated) and delete the groups no target took. Returns the camera's metrics (``texel_kernel_auto``)."""
     import dataclasses
     import shutil
 
     from objcam.transport.build import build_camera
     from objcam.transport.engine import current
+    from objcam.transport.storage import load_group, write_columns
 
+    names = [t.name for t in targets]
+    joint = not (art.description.albedo_object.known and art.description.albedo_support.known)
+    box_tr = load_group(out / sub)
     try:  # a capture the solve refuses (no usable pixel, say) is the solve stage's to report: keep box texels
-        box = pilot(art, targets, out / sub, capture)
+        results = {"box": pilot(art, targets, box_tr, capture)}
     except Exception as e:  # noqa: BLE001
         return {"texel_kernel_auto": {"mode": mode, "skipped": f"{type(e).__name__}: {e}"[:300]}}
-    names = [t.name for t in targets] if mode == "fit" else triggered(box)
-    rec = {"mode": mode, "targets": {n: {"dark_sky_area_box": round(p["dark_sky_area"], 5), "kernel": 1.0}
-                                     for n, p in box.items()}}
-    if not names:
-        return {"texel_kernel_auto": rec}
-    narrow = dataclasses.replace(settings, texel_kernel=NARROW,
-                                 auto_choice=model_choice if settings.model == "auto" else None)
-    mk = build_camera(geo, targets[0].camera, out / (sub + "k"), narrow, valids=valids,
-                      targets=[t.name for t in targets], target_noise=noise)
-    current().write_gram(out / (sub + "k"))
-    joint = not (art.description.albedo_object.known and art.description.albedo_support.known)
-    asked = targets if joint else [t for t in targets if t.name in names]
-    rec["targets"] = choose(box, pilot(art, asked, out / (sub + "k"), capture), names, joint)
-    mapping.update({n: sub + "k" for n, r in rec["targets"].items() if r["kernel"] < 1})
-    for s in (sub, sub + "k"):
-        if s not in mapping.values():
-            shutil.rmtree(out / s)
-    return {"texel_kernel_auto": rec, "seconds_narrow": mk.get("seconds")}
+    box = results["box"]
+    metrics: dict = {}
+    want = names if mode == "fit" else triggered(box)
+    if want:
+        narrow = dataclasses.replace(settings, texel_kernel=NARROW,
+                                     auto_choice=model_choice if settings.model == "auto" else None)
+        mk = build_camera(geo, targets[0].camera, out / (sub + "k"), narrow, valids=valids, targets=names,
+                          target_noise=noise)
+        current().write_gram(out / (sub + "k"))
+        asked = targets if joint else [t for t in targets if t.name in want]
+        results["narrow"] = pilot(art, asked, load_group(out / (sub + "k")), capture)
+        metrics["seconds_narrow"] = mk.get("seconds")
+    grid_blobs = {n: np.flatnonzero(compact_blobs(box[n]["envmap"], box[n]["mask"]).ravel()) for n in names}
+    texels = np.unique(np.concatenate(list(grid_blobs.values())))
+    compact = None
+    if texels.size and direct is not None:
+        compact, pos = compact_transport(box_tr, direct, texels)
+        asked = targets if joint else [t for t in targets if grid_blobs[t.name].size]
+        results["compact"] = pilot(art, asked, compact, capture)
+        metrics["compact_texels"] = int(pos.size)
+    choice = pick(results, names, joint)
+    group = {"box": sub, "narrow": sub + "k", "compact": sub + "c"}
+    if "compact" in choice.values():
+        write_columns(out / sub, out / (sub + "c"), compact.A, pos, compact._gram)
+    mapping.update({n: group[c] for n, c in choice.items()})
+    for g in (sub, sub + "k"):
+        if g not in mapping.values() and (out / g).exists():
+            shutil.rmtree(out / g)
+    rec = {n: {"dark_sky_area_box": round(box[n]["dark_sky_area"], 5), "kernel": choice[n]}
+           | {f"chi2_{c}": round(r[n]["chi2"], 5) for c, r in results.items() if n in r} for n in names}
+    return {"texel_kernel_auto": {"mode": mode, "targets": rec}} | metrics

@@ -132,6 +132,37 @@ def add_to_columns(folder: str | Path, delta_fn, chunk_columns: int | None = Non
             progress.update(b - a)
 
 
+def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarray, gram: np.ndarray) -> None:
+    """A group ``dst``: the group ``src`` with A's columns ``pos`` replaced by those of ``A`` (C, M, N) and its
+    Gram matrix ``gram`` (C, N, N) (objcam.transport.kernel's compact kernel). The stage's folder is temporary
+    until it finishes, so the copy needs no atomic step of its own; gram.npy is written atomically as ever."""
+    import os
+    import shutil
+
+    import zarr
+
+    from objcam.image_io import _tmp_path
+
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns(GRAM))
+    g = zarr.open_group(str(dst), mode="r+")
+    arr = g["A"]
+    step = arr.chunks[2]
+    for a in sorted({int(p) // step * step for p in pos}):
+        b = min(arr.shape[2], a + step)
+        arr[:, :, a:b] = A[:, :, a:b]
+    g.attrs["narrow_texels"] = [int(t) for t in np.asarray(g["texel_index"][...])[pos]]
+    path = Path(dst) / GRAM
+    tmp = _tmp_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asarray(gram, np.float64))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_index(out: str | Path, mapping: dict[str, str]) -> None:
     from objcam.image_io import atomic_write_text
 
