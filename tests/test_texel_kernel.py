@@ -156,3 +156,12 @@ def test_compact_blobs_are_lamps_not_windows():
     mask[10, 0] = False
     assert not compact_blobs(env, mask)[10, 0]  # unsolved texels are never chosen
     assert not compact_blobs(np.zeros_like(env), mask).any()
+
+
+def test_auto_keeps_box_texels_where_an_albedo_is_unknown(tmp_path):
+    """The joint solve is not repeated per candidate under auto (its cost), and says so; one A, box texels."""
+    folder = tmp_path / "scene"
+    _write_artifact(folder, sup=None, cams=1, noise=0.002)
+    m = _run(folder, tmp_path / "auto", model="direct")
+    assert "unknown albedo" in m["texel_kernel_auto"]["skipped"]
+    assert sorted(p.name for p in (tmp_path / "auto").iterdir() if p.is_dir()) == ["cam0"]

@@ -23,7 +23,9 @@ residual against the stated noise):
   (``auto``, the default) or for every target (``fit``).
 
 A target whose albedo is unknown shares its camera's A with the other targets of that camera (the joint solve
-ties them by the albedo), so there the camera chooses, by the chi-squared summed over its targets. Measured on the
+ties them by the albedo), so there the camera chooses, by the chi-squared summed over its targets; ``auto`` keeps
+box texels there, since the joint solve repeated per candidate took a two-photo capture's transport from 10 to 58 s
+(``fit`` still asks). Measured on the
 hard suite and the core bench's capture: bench/results.md, issue 22, session 28.
 """
 
@@ -162,6 +164,9 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
 
     names = [t.name for t in targets]
     joint = not (art.description.albedo_object.known and art.description.albedo_support.known)
+    if joint and mode == "auto":  # measured: a two-photo joint capture's transport 10 -> 58 s with the pilots
+        return {"texel_kernel_auto": {"mode": mode, "skipped": "unknown albedo: the joint solve is not repeated "
+                                      "per candidate (texel_kernel=fit does)"}}
     box_tr = load_group(out / sub)
     try:  # a capture the solve refuses (no usable pixel, say) is the solve stage's to report: keep box texels
         results = {"box": pilot(art, targets, box_tr, capture)}
