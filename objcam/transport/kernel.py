@@ -113,6 +113,7 @@ def compact_transport(tr, direct, texels: np.ndarray):
     import copy
     import dataclasses
 
+    from objcam.solvers.regularization import _block_rows
     from objcam.transport.direct import DirectStats, SplitDirect
 
     pos = np.flatnonzero(np.isin(tr.texel_index, texels))
@@ -127,8 +128,12 @@ def compact_transport(tr, direct, texels: np.ndarray):
     A = tr.A.copy()
     A[:, :, pos] += narrow.columns(tex) - direct.columns(tex)
     G = np.array(tr.gram(), np.float64)
+    step = _block_rows(A.shape[2])  # float64 row blocks of A, as the Gram matrix itself is accumulated
     for c in range(A.shape[0]):
-        cols = A[c].T.astype(np.float64) @ A[c][:, pos].astype(np.float64)  # (N, B)
+        cols = np.zeros((A.shape[2], pos.size))  # (N, B): A_c^T A_c[:, pos]
+        for r0 in range(0, A.shape[1], step):
+            blk = np.asarray(A[c, r0 : r0 + step], np.float64)
+            cols += blk.T @ blk[:, pos]
         G[c][:, pos] = cols
         G[c][pos, :] = cols.T
     out = dataclasses.replace(tr, A=A)
@@ -186,13 +191,12 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
         metrics["seconds_narrow"] = mk.get("seconds")
     grid_blobs = {n: np.flatnonzero(compact_blobs(box[n]["envmap"], box[n]["mask"]).ravel()) for n in names}
     texels = np.unique(np.concatenate(list(grid_blobs.values())))
-    compact = None
     if texels.size and direct is not None:
         compact, pos = compact_transport(box_tr, direct, texels)
         asked = targets if joint else [t for t in targets if grid_blobs[t.name].size]
         results["compact"] = pilot(art, asked, compact, capture)
         metrics["compact_texels"] = int(pos.size)
-    choice = pick(results, names, joint)
+    choice = pick(results, names, joint)  # "compact" only where results has it, so compact and pos are set
     group = {"box": sub, "narrow": sub + "k", "compact": sub + "c"}
     if "compact" in choice.values():
         write_columns(out / sub, out / (sub + "c"), compact.A, pos, compact._gram)

@@ -135,13 +135,10 @@ def add_to_columns(folder: str | Path, delta_fn, chunk_columns: int | None = Non
 def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarray, gram: np.ndarray) -> None:
     """A group ``dst``: the group ``src`` with A's columns ``pos`` replaced by those of ``A`` (C, M, N) and its
     Gram matrix ``gram`` (C, N, N) (objcam.transport.kernel's compact kernel). The stage's folder is temporary
-    until it finishes, so the copy needs no atomic step of its own; gram.npy is written atomically as ever."""
-    import os
+    until it finishes, so the copy needs no atomic step of its own; gram.npy is written as write_gram writes it."""
     import shutil
 
     import zarr
-
-    from objcam.image_io import _tmp_path
 
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(GRAM))
     g = zarr.open_group(str(dst), mode="r+")
@@ -151,16 +148,7 @@ def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarr
         b = min(arr.shape[2], a + step)
         arr[:, :, a:b] = A[:, :, a:b]
     g.attrs["narrow_texels"] = [int(t) for t in np.asarray(g["texel_index"][...])[pos]]
-    path = Path(dst) / GRAM
-    tmp = _tmp_path(path)
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, np.asarray(gram, np.float64))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    _save_gram(dst, gram.shape[0], gram.shape[1], iter(gram))
 
 
 def write_index(out: str | Path, mapping: dict[str, str]) -> None:
@@ -320,39 +308,49 @@ class Transport:
 def write_gram(folder: str | Path) -> float:
     """Store A_c^T A_c (C, N, N) float64 beside A as ``gram.npy``; returns the seconds it took.
 
-    Each channel's Gram matrix is computed into one N x N array and streamed to a temporary file renamed into
-    place (atomic): the peak beside A is one Gram matrix (2.2 GB at 128 x 256), not the stacked channels and
-    their serialised copies."""
-    import os
+    Each channel's Gram matrix is computed into one N x N array and streamed to the file (:func:`_save_gram`):
+    the peak beside A is one Gram matrix (2.2 GB at 128 x 256), not the stacked channels and their serialised
+    copies."""
     import time
 
-    from objcam.image_io import _tmp_path
     from objcam.solvers import gram
     from objcam.threads import blas_threads
 
     t0 = time.perf_counter()
     tr = load_group(folder)
-    c, n = tr.channels, tr.n_texels
+    G = np.empty((tr.n_texels, tr.n_texels), np.float64)
+
+    def channels():
+        # one large float64 syrk per channel: two threads take it 0.84 -> 0.36 s at 16,384 x 1,088 on 2 cores
+        # (objcam.threads: it is factorisations and line searches, not big products, that one thread protects)
+        with blas_threads():
+            for ch in range(tr.channels):
+                yield gram(tr.A[ch], out=G)
+
+    _save_gram(folder, tr.channels, tr.n_texels, channels())
+    return time.perf_counter() - t0
+
+
+def _save_gram(folder: str | Path, c: int, n: int, channels) -> None:
+    """Write ``gram.npy`` (C, N, N) float64 into ``folder`` from ``channels``, an iterable of the C (N, N)
+    float64 matrices in order, streamed to a temporary file renamed into place (atomic)."""
+    import os
+
+    from objcam.image_io import _tmp_path
+
     path = Path(folder) / GRAM
     tmp = _tmp_path(path)
     try:
         with open(tmp, "wb") as f:
             np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float64)),
                                                      "fortran_order": False, "shape": (c, n, n)})
-            G = np.empty((n, n), np.float64)
-            # one large float64 syrk per channel: two threads take it 0.84 -> 0.36 s at 16,384 x 1,088 on 2
-            # cores (objcam.threads: it is factorisations and line searches, not big products, that one thread
-            # protects)
-            with blas_threads():
-                for ch in range(c):
-                    gram(tr.A[ch], out=G)
-                    G.tofile(f)
+            for G in channels:
+                np.ascontiguousarray(G, np.float64).tofile(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    return time.perf_counter() - t0
 
 
 def load_group(folder: str | Path, load_A: bool = True) -> Transport:
