@@ -120,12 +120,19 @@ def test_camera_looking_past_the_object_is_red(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", str(cap), "--until", "solve", "--set", "transport.model=direct"]) == 0
     out = " ".join(capsys.readouterr().out.split())
-    v = json.loads((cap / "objcam" / "solve" / "t0" / "solve.json").read_text())["verdict"]
-    assert v["grade"] == "red" and v["uncertain_visible_area"] > 0.75
+    solve = json.loads((cap / "objcam" / "solve" / "t0" / "solve.json").read_text())
+    v = solve["verdict"]
+    # the photo tells nothing of the sky's azimuth: the map is its profile per row (solve.sky_profile), still red
+    assert solve["edges"]["sky_profile"]["taken"] and v["grade"] == "red"
     stage = json.loads((cap / "objcam" / "solve" / "stage.json").read_text())
     assert stage["metrics"]["verdict"] == "red"
     assert "WARNING: t0 graded red" in out
     assert "envmap.exr verdict red: " in out  # the end-of-run lines name each envmap with its grade
+    # the map as solved: most of its sky is not determined at the brightness it shows
+    assert main(["run", str(cap), "--until", "solve", "--set", "transport.model=direct",
+                 "--set", "solve.sky_profile=off"]) == 0
+    v = json.loads((cap / "objcam" / "solve" / "t0" / "solve.json").read_text())["verdict"]
+    assert v["grade"] == "red" and v["uncertain_visible_area"] > 0.75
 
 
 def test_texel_uncertainty_is_exact_where_it_decides(toy):
@@ -155,3 +162,34 @@ def test_texel_uncertainty_is_exact_where_it_decides(toy):
         assert np.array_equal(s > above, exact > above)  # every decision the exact spread's
     broken = sigma * np.sqrt(inverse_diagonal(Q, last=int(need.sum())))
     assert not np.allclose(broken, exact[need], rtol=1e-4)
+
+
+def test_row_mean_spread_is_the_profile_models_posterior(toy):
+    """The spread of a texel the map gives as its row's value (objcam.solvers.skyprofile): sigma sqrt of the
+    row's diagonal entry of (B^T Q B)^-1, B mapping one unknown per profiled row and one per other texel to the
+    texels, against a dense inverse; a row value is better determined than any one of its texels. Broken: the
+    spread of one free texel (the texel model's) is larger on every profiled texel."""
+    from objcam.solvers import absolute_weights, difference_operator, regularized_gram
+    from objcam.solvers.plan.defaults import LS_NOISE_FACTOR
+    from objcam.solvers.plan.verdict import data_gram, row_mean_spread
+
+    tr, _, _, _ = toy
+    grams, D, sigma = tr.gram(), difference_operator(tr.grid, tr.texel_index), 0.37
+    rows = tr.texel_index // tr.grid.width
+    sky = (rows >= 2) & (rows <= 5)
+    sky[np.flatnonzero(rows == 3)[:3]] = False  # a source's texels held out of its row
+    got = row_mean_spread(grams, [], D, NOISE, sigma, 1e-4, rows, sky)
+    assert np.all(np.isnan(got[~sky])) and np.all(np.isfinite(got[sky]))
+    G = data_gram(grams, [], np.float64)
+    Q = regularized_gram(G, D, *absolute_weights(G, LS_NOISE_FACTOR * NOISE**2, 1e-4))
+    r_of = np.unique(rows[sky])
+    others = np.flatnonzero(~sky)
+    B = np.zeros((len(rows), r_of.size + others.size))
+    for k, r in enumerate(r_of):
+        B[sky & (rows == r), k] = 1.0
+    B[others, r_of.size + np.arange(others.size)] = 1.0
+    inv = np.linalg.inv(B.T @ Q @ B)
+    for k, r in enumerate(r_of):
+        np.testing.assert_allclose(got[sky & (rows == r)], sigma * np.sqrt(inv[k, k]), rtol=1e-8)
+    texel = sigma * np.sqrt(np.diag(np.linalg.inv(Q)))
+    assert np.all(got[sky] < texel[sky])

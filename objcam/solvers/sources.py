@@ -91,6 +91,15 @@ def rim_of(blob: np.ndarray, grid: EnvGrid, texel_index: np.ndarray, exclude: np
     return np.flatnonzero(ring)
 
 
+def fit_residual(A, use: np.ndarray, Y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, float]:
+    """(residual (M_use, 3), its sum of squares) of the map z (N, 3) on A (C, M, N) against Y (M_use, 3), the
+    target at the usable rows ``use`` (M,) bool; float32 products, as the solve's own prediction."""
+    pred = np.stack([np.asarray(A[0 if A.shape[0] == 1 else c] @ z[:, c].astype(np.float32), np.float64)
+                     for c in range(3)], axis=1)[use]
+    r = Y - pred
+    return r, float(np.sum(r * r))
+
+
 def _columns(A: np.ndarray, use: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(C, M_use, K) float64 columns ``cols`` of A (C, M, N) at the usable rows."""
     return np.stack([np.asarray(A[c][:, cols], np.float64)[use] for c in range(A.shape[0])])
@@ -129,10 +138,7 @@ def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray
     Y = np.asarray(y, np.float64)[use]
 
     def misfit(z: np.ndarray) -> tuple[np.ndarray, float]:
-        pred = np.stack([np.asarray(A[0 if A.shape[0] == 1 else c] @ z[:, c].astype(np.float32), np.float64)
-                         for c in range(3)], axis=1)[use]
-        r = Y - pred
-        return r, float(np.sum(r * r))
+        return fit_residual(A, use, Y, z)
 
     r0, ss0 = misfit(x)
     m = int(Y.size)

@@ -53,13 +53,16 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
     with single_blas_thread():
         weak = known_weak(tr, params)
         ls, ls_source, auto_info = choose_ls(target, d, grid, params, linear=edges)
-        rejected = None
+        rejected = profile = None
         if edges:
             sigma_abs = noise_per_value(target, d) if params.outliers != "keep" else None
             X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
                                                                         weak, sigma_abs)
+            fitted = use if rejected is None else use & ~rejected
             if params.sources != "off":  # issue 22: a bright blob the data cannot place, as a point source
-                X, edge_info["sources"] = known_sources(tr, grid, use if rejected is None else use & ~rejected, y, X)
+                X, edge_info["sources"] = known_sources(tr, grid, fitted, y, X)
+            if params.sky_profile != "off":  # issues 22, 28: azimuthal detail the data cannot tell from none
+                X, edge_info["sky_profile"], profile = known_sky_profile(tr, grid, fitted, y, X, params, weak)
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -70,7 +73,7 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
             "ls_relative": ls, "ls_source": ls_source}
     sol = known_solution(tr, grid, d if rejected is None else d._replace(use=use & ~rejected), X, params, info,
                          edge_info, auto_info, weak)
-    sol.rejected = rejected
+    sol.rejected, sol.profile = rejected, profile
     return sol
 
 
@@ -81,6 +84,19 @@ def known_sources(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarr
 
     got = compact_sources(tr.A, use, y, X, grid, tr.texel_index)
     return got.x, got.info
+
+
+def known_sky_profile(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarray, params: SolveParams,
+                      weak: np.ndarray | None) -> tuple:
+    """params.sky_profile=auto (objcam.solvers.skyprofile) on the pixels ``use`` the solve fitted, over the texels
+    it solved: (X (N, 3), its record for solve.json's edges, the (N,) bool texels given as their row's mean or
+    None)."""
+    from objcam.solvers.skyprofile import sky_profile
+
+    P = known_basis(tr, params, weak=weak)
+    solved = np.ones(len(tr.texel_index), bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
+    got = sky_profile(tr.A, use, y, X, grid, tr.texel_index, solved, tr.solid_angle)
+    return got.x, got.info, got.sky
 
 
 def noise_per_value(target, d: TargetData) -> float | None:

@@ -39,6 +39,7 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
                + (f", support light redone {n_refit}x from the estimated albedo" if n_refit else "")
                + (f", final step: {n_final} round(s) of the albedo's TV step and the envmaps at it" if n_final else "")
                + sources_phrase(per_target)
+               + sky_profile_phrase(per_target)
                + f", {total:.2f} s; KKT residual <= {worst_kkt:.1e}; "
                + ", ".join(f"{k}: image residual {v['relative_image_residual']:.3f}"
                            + (f", {v['verdict']['grade']}" if v.get("verdict") else "") for k, v in per_target.items()))
@@ -59,3 +60,14 @@ def sources_phrase(per_target: dict[str, dict]) -> str:
         return ""
     n, found = sum(r["collapsed"] for r in rec), sum(r["blobs_found"] for r in rec)
     return f", {n} of {found} bright blob(s) collapsed to point sources (the data could not tell them apart)"
+
+
+def sky_profile_phrase(per_target: dict[str, dict]) -> str:
+    """solve.sky_profile=auto (objcam.solvers.skyprofile): ", the sky given as its elevation profile for N
+    target(s) (...)" or ""."""
+    taken = [k for k, v in per_target.items() if ((v.get("edges") or {}).get("sky_profile") or {}).get("taken")]
+    if not taken:
+        return ""
+    return (f", the sky outside the bright sources given as its mean per elevation row for {', '.join(taken)} "
+            "(the photo could not tell its azimuthal detail from none)")
+

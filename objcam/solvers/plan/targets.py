@@ -36,6 +36,8 @@ class TargetSolution:
     unknown and estimated; both None for a known albedo.
     fine: (envmap, mask) on a supersampled A's grid when ``envmap`` and ``mask`` are their area average.
     rejected: (M,) bool, A's rows the solve dropped as outliers (objcam.solvers.outliers); None when none were.
+    profile: (N,) bool over A's texels, those the map gives as their row's mean (objcam.solvers.skyprofile); None
+    when the map is as solved.
     """
 
     envmap: np.ndarray
@@ -46,6 +48,7 @@ class TargetSolution:
     albedo_mask: np.ndarray | None = None
     fine: tuple[np.ndarray, np.ndarray] | None = None
     rejected: np.ndarray | None = None
+    profile: np.ndarray | None = None
 
 
 def texel_mask(grid: EnvGrid, texel_index: np.ndarray) -> np.ndarray:

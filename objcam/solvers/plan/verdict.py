@@ -119,6 +119,59 @@ def data_gram_diagonal(grams: np.ndarray, dropped: list[np.ndarray]) -> np.ndarr
             - sum(np.einsum("ij,ij->j", a, a) for a in dropped)) / grams.shape[0]
 
 
+def _prior(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, lr_rel: float) -> tuple:
+    """(diag(G) (N,), ls_abs, lr_abs, D^T D as COO with duplicates summed or None) of the verdict's posterior
+    precision ``Q = G + ls D^T D + lr I`` (:func:`texel_uncertainty`)."""
+    n = grams.shape[-1]
+    diag = data_gram_diagonal(grams, dropped)
+    scale = float(np.mean(diag)) if n else 0.0  # solvers.absolute_weights' unit: mean(diag(G))
+    ls_abs, lr_abs = LS_NOISE_FACTOR * sigma_rel**2 * scale, max(lr_rel, 1e-6) * scale
+    P = (D.T @ D).tocoo() if D is not None and ls_abs > 0 and D.shape[0] else None
+    if P is not None:
+        P.sum_duplicates()
+    return diag, ls_abs, lr_abs, P
+
+
+def row_mean_spread(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, sigma_abs: float,
+                    lr_rel: float, rows: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    """(N,): for each texel of ``sky`` (N,) bool, which the map gives as one value per row (its row's mean:
+    objcam.solvers.skyprofile; ``rows`` (N,) lat-long rows), the posterior standard deviation of that value in
+    the map's own model, the envmaps ``x = B z`` with one unknown per row's ``sky`` texels and one per other
+    texel: ``sigma_abs sqrt(((B^T Q B)^-1)_rr)``, Q as in :func:`texel_uncertainty` (the same posterior, restricted
+    to the envmaps the map claims, as the solves' merged bases restrict theirs); NaN elsewhere. ``B^T Q B`` is
+    merged from the Gram file block by block (objcam.solvers.basis.merge_gram): no N x N array."""
+    import scipy.linalg as sl
+    import scipy.sparse as sp
+
+    from objcam.solvers.basis import merge_gram
+
+    n = grams.shape[-1]
+    out = np.full(n, np.nan)
+    if not sky.any():
+        return out
+    _, ls_abs, lr_abs, _ = _prior(grams, dropped, D, sigma_rel, lr_rel)
+    r_of, r_idx = np.unique(rows[sky], return_inverse=True)
+    col = np.empty(n, np.int64)
+    col[sky] = r_idx.ravel()
+    col[~sky] = r_of.size + np.arange(int((~sky).sum()))
+    B = sp.csr_matrix((np.ones(n), (np.arange(n), col)), shape=(n, r_of.size + int((~sky).sum())))
+    c = grams.shape[0]
+    QB = sum(merge_gram(B, grams[ch]) for ch in range(c)) / c
+    for a in dropped:
+        ab = np.asarray((B.T @ a.T).T)  # (k, K): the dropped rows on the basis
+        QB -= (ab.T @ ab) / c
+    if D is not None and ls_abs > 0 and D.shape[0]:
+        DB = sp.csr_matrix(D @ B)
+        QB += ls_abs * (DB.T @ DB).toarray()
+    QB += lr_abs * (B.T @ B).toarray()
+    fac = sl.cho_factor(QB, lower=True, overwrite_a=True, check_finite=False)
+    E = np.zeros((QB.shape[0], r_of.size))
+    E[np.arange(r_of.size), np.arange(r_of.size)] = 1.0
+    var = np.diag(sl.cho_solve(fac, E, check_finite=False)[: r_of.size])
+    out[sky] = sigma_abs * np.sqrt(np.maximum(var, 0.0))[r_idx.ravel()]
+    return out
+
+
 def texel_uncertainty(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, sigma_abs: float,
                       lr_rel: float, above: np.ndarray | None = None, dtype=None) -> tuple[np.ndarray, dict]:
     """((N,) posterior standard deviation of each texel's radiance, {"precision", "exact_texels"}):
@@ -137,13 +190,9 @@ def texel_uncertainty(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel
     from objcam.threads import cores
 
     n = grams.shape[-1]
-    diag = data_gram_diagonal(grams, dropped)
-    scale = float(np.mean(diag)) if n else 0.0  # solvers.absolute_weights' unit: mean(diag(G))
-    ls_abs, lr_abs = LS_NOISE_FACTOR * sigma_rel**2 * scale, max(lr_rel, 1e-6) * scale
-    P = (D.T @ D).tocoo() if D is not None and ls_abs > 0 and D.shape[0] else None
+    diag, ls_abs, lr_abs, P = _prior(grams, dropped, D, sigma_rel, lr_rel)
     qdiag = diag + lr_abs
     if P is not None:
-        P.sum_duplicates()
         qdiag += ls_abs * np.bincount(P.row[P.row == P.col], P.data[P.row == P.col], minlength=n)
     s = sigma_abs / np.sqrt(qdiag)  # lower bounds
     need = np.ones(n, bool) if above is None else ~(s > above)
@@ -208,6 +257,13 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         above = np.maximum(lum, VISIBLE_FRACTION * white)  # >= lum: a spread above it answers both tests
         s, how = texel_uncertainty(grams, dropped, D, sigma_rel, sigma_abs, lr_rel, above=above)
         rec["uncertainty_precision"], rec["uncertainty_exact_texels"] = how["precision"], how["exact_texels"]
+        if sol.profile is not None and sol.profile.any():
+            # texels the map gives as one value per row (objcam.solvers.skyprofile): the spread of that value in
+            # the model the map claims, not one free texel's
+            rows = tr.texel_index // tr.grid.width
+            s = np.where(sol.profile, row_mean_spread(grams, dropped, D, sigma_rel, sigma_abs, lr_rel, rows,
+                                                      sol.profile), s)
+            rec["uncertainty_row_means"] = int(np.unique(rows[sol.profile]).size)
         unsure = s > lum
         sky = max(float(omega[up].sum()), 1e-300)
         rec["uncertain_area"] = float(omega[unsure & up].sum() / sky)

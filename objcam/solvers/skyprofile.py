@@ -1,0 +1,90 @@
+"""The sky as its elevation profile where the photo cannot tell it from the solved map (issues 22 and 28,
+``solve.sky_profile``).
+
+Under a lamp, a sun or a window the dim sky gives the photo a small share of its light, and the edge prior, not
+the data, draws its azimuthal detail: patches, and dark rings around a lamp that answer the lamp's sub-texel
+shadows rather than any light (bench/results.md, issue 22 sessions 22 and 27). Real skies vary mostly with
+elevation. This step asks the data, after the solve, whether the detail is theirs:
+
+1. the bright blobs (:func:`objcam.solvers.sources.bright_blobs`: texels above ``BRIGHT_FACTOR`` x the map's
+   median, 8-connected, the azimuth wrapping), grown by one texel, stay as solved: the sources and their rims;
+2. every other solved texel takes the solid-angle mean of its row's such texels: the map's own energy per
+   elevation row, kept, its azimuthal detail dropped;
+3. the profile map is kept when the fit's sum of squared residuals over the fitted pixel values rises by less
+   than its own spread, ``sqrt(2 / M)`` x the solved map's (M values: a chi-squared of M values has spread
+   ``sqrt(2 M)``): the rule of objcam.solvers.sources, one test for the whole map.
+
+A sky the photo does see in azimuth (an HDRI's tree line, a bright horizon on one side) raises the misfit by
+hundreds of spreads and is left as solved; with low noise (the core bench's 0.1%) the spread is small and
+every HDRI keeps its map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from objcam.envmap import EnvGrid
+from objcam.solvers.sources import BRIGHT_FACTOR, bright_blobs, fit_residual, rim_of
+
+
+@dataclass
+class SkyProfileResult:
+    """The map after the step (the solved one, or its profile) and its record for solve.json."""
+
+    x: np.ndarray  # (N, 3)
+    info: dict = field(default_factory=dict)
+    sky: np.ndarray | None = None  # (N,) bool: the texels given as their row's mean; None when not taken
+
+
+def row_profile(x: np.ndarray, rows: np.ndarray, sky: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """(N, 3): ``x`` (N, 3) with each texel of ``sky`` (N,) bool set to the solid-angle (``omega`` (N,), sr)
+    weighted mean of the ``sky`` texels of its row (``rows`` (N,) the lat-long row of each texel); the others
+    as they are."""
+    out = np.array(x, dtype=np.float64, copy=True)
+    r = rows[sky]
+    w = np.asarray(omega, np.float64)[sky]
+    n_rows = int(rows.max()) + 1 if rows.size else 0
+    den = np.bincount(r, weights=w, minlength=n_rows)
+    for c in range(out.shape[1]):
+        num = np.bincount(r, weights=w * out[sky, c], minlength=n_rows)
+        out[sky, c] = (num / np.where(den > 0, den, 1.0))[r]
+    return out
+
+
+def sky_profile(A, use: np.ndarray, y: np.ndarray, x: np.ndarray, grid: EnvGrid, texel_index: np.ndarray,
+                solved: np.ndarray, omega: np.ndarray, factor: float = BRIGHT_FACTOR) -> SkyProfileResult:
+    """The step of the module docstring.
+
+    A: (C, M, N) the transport (C = 1: grey, or 3; rows indexable as numpy arrays); use: (M,) bool, the rows the
+    solve fitted; y: (M, 3) the target at A's rows; x: (N, 3) the solved map at A's texels ``texel_index``
+    (flat indices into ``grid``); solved: (N,) bool, the texels the solve solved (the rest stay 0); omega: (N,)
+    their solid angles (sr). Returns the map kept and the record: ``taken``, the sums of squares of both maps,
+    the spread, ``rise_over_spread``, the texels held as sources."""
+    x = np.asarray(x, np.float64)
+    Y = np.asarray(y, np.float64)[use]
+    rows = np.asarray(texel_index, np.int64) // grid.width
+    solved = np.asarray(solved, bool)
+    lum = np.where(solved, x.mean(axis=1), 0.0)
+    blobs = bright_blobs(lum, grid, texel_index, factor)
+    held = np.zeros(lum.size, bool)
+    for b in blobs:
+        held[b] = True
+    if held.any():
+        held[rim_of(np.flatnonzero(held), grid, texel_index, held)] = True
+    sky = solved & ~held
+    info: dict = {"mode": "auto", "bright_factor": factor, "blobs": len(blobs), "source_texels": int(held.sum()),
+                  "sky_texels": int(sky.sum()), "fitted_values": int(Y.size)}
+    if not sky.any():
+        return SkyProfileResult(x, info | {"taken": False, "why": "no sky texel outside the bright blobs"})
+    prof = row_profile(x, rows, sky, omega)
+
+    ss_map = fit_residual(A, use, Y, x)[1]
+    spread = float(np.sqrt(2.0 / max(Y.size, 1)) * ss_map)
+    ss_prof = fit_residual(A, use, Y, prof)[1]
+    rise = ss_prof - ss_map
+    taken = bool(rise <= spread)
+    info.update({"taken": taken, "ss_map": ss_map, "ss_profile": ss_prof, "ss_spread": spread,
+                 "rise_over_spread": float(rise / spread) if spread > 0 else float("inf")})
+    return SkyProfileResult(prof, info, sky) if taken else SkyProfileResult(x, info)
