@@ -61,9 +61,6 @@ class EdgeResult:
     edge_scale: float = 0.0  # s
     kept_edges: float = 0.0  # fraction of edges above eps at the end (where the prior acts like TV)
     tone: float = 0.0  # the tone exponent p used (0: none)
-    # (E,) the last step's edge weights w_e: its quadratic majoriser's prior is ls ||diag(sqrt(w)) D x||^2 (on the
-    # basis); empty for a run with no step
-    weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # with solve_edges(keep_buffers=True): each block's (N', N') Q buffer of the last step, scratch that a solve
     # continuing from or warm-started by this result rewrites instead of allocating (a fresh 79 MB array at
     # 64 x 128 is a mapping whose pages fault in)
@@ -215,9 +212,7 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
         donor.buffers = []  # (handed over: the donor's last Q is overwritten by the first step here)
     loose: list[tuple | None] = [None] * len(grams)  # a block whose last solve stopped at STEP_TOL: (Q, split)
     early = False  # F converged (or the solution is flat) before ``steps``: this run is final
-    w_last = w
     for step in range(first, steps + 1):
-        w_last = w
         Dw = sp.diags(np.sqrt(w)) @ D
         results = []
         solved: list = [None] * len(grams)  # (result, S) of the PCG path's solves, for the objective
@@ -271,5 +266,5 @@ def solve_edges(grams: Sequence[np.ndarray], rhs: Sequence[np.ndarray], chans: S
     kept = float(np.mean(edge_norms(D, X) > eps)) if eps > 0 else 0.0
     if basis is not None:
         X = np.asarray(P @ X)
-    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone), weights=w_last,
+    return EdgeResult(X, results, history, len(history) - 1 + first, s, kept, float(tone),
                       buffers=Qs if keep_buffers else [])
