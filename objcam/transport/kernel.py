@@ -57,7 +57,8 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     """{target: {"chi2", "values", "dark_sky_area", "envmap", "mask"}} of the default solve of ``targets`` on
     the Transport ``tr`` (the verdict's chi2 per fitted value and its share of black sky,
-    objcam.solvers.plan.verdict; the solved (H, W, 3) envmap and its (H, W) mask)."""
+    objcam.solvers.plan.verdict; the solved (H, W, 3) envmap and its (H, W) mask). Without solve.sky_profile:
+    the pilot judges the A, and the black rings a profile would hide are what asks for the narrow one."""
     from objcam.solvers.plan.capture import solve_capture
     from objcam.solvers.plan.params import SolveParams
     from objcam.solvers.plan.targets import TargetData
@@ -65,7 +66,8 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
 
     data = {t.name: TargetData(tr, *target_rows(t.load_image(scene.folder), t.load_valid(scene.folder),
                                                 tr.downsample, tr.pixel_index)) for t in targets}
-    sols = solve_capture(scene.model_copy(update={"targets": list(targets)}), data, SolveParams(), capture)
+    sols = solve_capture(scene.model_copy(update={"targets": list(targets)}), data,
+                         SolveParams(sky_profile="off"), capture)
     out = {}
     for t in targets:
         v = sols[t.name].info.get("verdict", {})

@@ -34,6 +34,7 @@ from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_noise, noise_ls, texel_group, weak_texels
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
+from objcam.solvers.skyprofile import profile_basis, sky_profile
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
 
@@ -62,7 +63,8 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
             if params.sources != "off":  # issue 22: a bright blob the data cannot place, as a point source
                 X, edge_info["sources"] = known_sources(tr, grid, fitted, y, X)
             if params.sky_profile != "off":  # issues 22, 28: azimuthal detail the data cannot tell from none
-                X, edge_info["sky_profile"], profile = known_sky_profile(tr, grid, fitted, y, X, params, weak)
+                X, kkt, obj, iters, edge_info, rejected, profile = with_sky_profile(
+                    tr, grid, d, fitted, X, (kkt, obj, iters, edge_info, rejected), ls, params, weak, sigma_abs)
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -86,17 +88,31 @@ def known_sources(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarr
     return got.x, got.info
 
 
-def known_sky_profile(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarray, params: SolveParams,
-                      weak: np.ndarray | None) -> tuple:
-    """params.sky_profile=auto (objcam.solvers.skyprofile) on the pixels ``use`` the solve fitted, over the texels
-    it solved: (X (N, 3), its record for solve.json's edges, the (N,) bool texels given as their row's mean or
-    None)."""
-    from objcam.solvers.skyprofile import sky_profile
-
+def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np.ndarray, solved: tuple,
+                     ls: float, params: SolveParams, weak: np.ndarray | None, sigma_abs: float | None) -> tuple:
+    """params.sky_profile=auto (objcam.solvers.skyprofile) after the edge solve ``solved`` = (KKT, objective,
+    iterations, edge record, rejected rows) of X (N, 3), on the pixels ``fitted`` it fitted: where the test keeps the
+    profile, the envmap solved again on the profile model (step 4; a supersampled A keeps the row means). Returns
+    (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool texels given as
+    their row's value or None)."""
+    kkt, obj, iters, edge_info, rejected = solved
     P = known_basis(tr, params, weak=weak)
-    solved = np.ones(len(tr.texel_index), bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
-    got = sky_profile(tr.A, use, y, X, grid, tr.texel_index, solved, tr.solid_angle)
-    return got.x, got.info, got.sky
+    inside = np.ones(len(tr.texel_index), bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
+    got = sky_profile(tr.A, fitted, d.y, X, grid, tr.texel_index, inside, tr.solid_angle)
+    rec = got.info
+    if got.sky is not None and tr.output_height == tr.env_height:
+        basis = profile_basis(P, tr.texel_index, grid, got.sky)
+        first = edge_info
+        X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, ls, params.lr, params,
+                                                                   weak, sigma_abs, basis=basis)
+        iters += more
+        if "sources" in first:
+            edge_info["sources"] = first["sources"]
+        rec["resolved"] = {"unknowns": int(basis.shape[1])}
+    else:
+        X = got.x
+    edge_info["sky_profile"] = rec
+    return X, kkt, obj, iters, edge_info, rejected, got.sky
 
 
 def noise_per_value(target, d: TargetData) -> float | None:
@@ -233,10 +249,13 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
 
 
 def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
-                      params: SolveParams, weak: np.ndarray | None = None, sigma_abs: float | None = None):
+                      params: SolveParams, weak: np.ndarray | None = None, sigma_abs: float | None = None,
+                      basis: sp.spmatrix | None = None):
     """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info and the
     (M,) bool rows of A dropped as outliers (None when none were; params.outliers, objcam.solvers.outliers, with
-    ``sigma_abs`` the stated noise of one fitted value, None when unknown)."""
+    ``sigma_abs`` the stated noise of one fitted value, None when unknown). ``basis``: the envmap basis (N, N')
+    to solve on instead of :func:`known_basis`'s (objcam.solvers.skyprofile.profile_basis; not with a
+    supersampled A)."""
     grams_all = tr.gram()
     C = tr.A.shape[0]
     grams, rhs, chans = [], [], []
@@ -254,7 +273,7 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     D = solvers.difference_operator(grid, tr.texel_index)
     eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
     yy = np.einsum("ij,ij->j", Y, Y)
-    basis = known_basis(tr, params, weak=weak)
+    basis = known_basis(tr, params, weak=weak) if basis is None else basis
     D = solved_edges(D, basis)
     refine_info = None
     if tr.output_height != tr.env_height:

@@ -63,11 +63,11 @@ def sources_phrase(per_target: dict[str, dict]) -> str:
 
 
 def sky_profile_phrase(per_target: dict[str, dict]) -> str:
-    """solve.sky_profile=auto (objcam.solvers.skyprofile): ", the sky given as its elevation profile for N
-    target(s) (...)" or ""."""
+    """solve.sky_profile=auto (objcam.solvers.skyprofile): ", the sky outside the bright sources solved as one value
+    per elevation row for T1, T2 (...)" or ""."""
     taken = [k for k, v in per_target.items() if ((v.get("edges") or {}).get("sky_profile") or {}).get("taken")]
     if not taken:
         return ""
-    return (f", the sky outside the bright sources given as its mean per elevation row for {', '.join(taken)} "
+    return (f", the sky outside the bright sources solved as one value per elevation row for {', '.join(taken)} "
             "(the photo could not tell its azimuthal detail from none)")
 
