@@ -111,6 +111,8 @@ def test_grade_rules():
     assert grade({"dark_sky_area": 0.05})[0] == "yellow"
     g, why = grade({"dark_sky_area": 0.2})
     assert g == "red" and why[0].startswith("20% of the sky is black")
+    g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9})  # solve.sky_profile: the azimuth is the prior's
+    assert g == "yellow" and why == [why[0]] and why[0].startswith("90% of the sky shown as one value per")
 
 
 def test_camera_looking_past_the_object_is_red(tmp_path, capsys):

@@ -21,7 +21,7 @@ elevation. This step asks the data, after the solve, whether the detail is their
 A sky the photo does see in azimuth (an HDRI's tree line, a bright horizon on one side) raises the misfit by
 hundreds of spreads and is left as solved; with low noise (the core bench's 0.1%) the spread is small and
 every HDRI keeps its map. Measured on the hard-case suite (bench/results.md, issues 22 and 28, session 29): 12 of
-96 targets take it, 9 better (dark rooms 0.37-0.44 -> 0.72-0.97 SSIM), 2 worse (-0.084, -0.014).
+96 targets take it, 9 better (dark rooms 0.37-0.44 -> 0.72-1.00 SSIM), 2 worse (-0.107, -0.014).
 """
 
 from __future__ import annotations

@@ -24,6 +24,9 @@ No ground truth is used: every measure comes from the photo, the model and the s
   ``pixels_rejected``: the share of the usable ones it dropped as outliers (objcam.solvers.outliers). chi2 is over
   the pixels it fitted.
 * the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
+* ``sky_profile_area``: the share of the sky the map gives as one value per elevation row
+  (objcam.solvers.skyprofile): its azimuthal detail is the prior's, not the photo's (yellow). Those texels'
+  uncertainty is that of their row's value in the map's own model (:func:`row_mean_spread`).
 
 Thresholds (objcam.solvers.plan.defaults, ``VERDICT_*``) and how they were chosen: bench/results.md, issue 22.
 
@@ -270,6 +273,8 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         rec["uncertain_energy"] = float(energy[unsure].sum() / total)
         shown = s > above
         rec["uncertain_visible_area"] = float(omega[shown & up].sum() / sky)
+    if sol.profile is not None and sol.profile.any():
+        rec["sky_profile_area"] = float(omega[sol.profile & up].sum() / max(float(omega[up].sum()), 1e-300))
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
         rec["transport_margin"] = float(metrics["auto_margin"])
@@ -325,6 +330,9 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
                       "or geometry the model lacks; see residual.exr)")
     if m.get("pixels_excluded", 0.0) > VERDICT_EXCLUDED_YELLOW:
         yellow.append(f"{m['pixels_excluded']:.0%} of the pixels unusable (saturated, invalid or hot)")
+    if m.get("sky_profile_area", 0.0) > 0:
+        yellow.append(f"{m['sky_profile_area']:.0%} of the sky shown as one value per elevation row: the photo did "
+                      "not tell its azimuthal detail from none (solve.sky_profile)")
     mg = m.get("transport_margin")
     if mg is not None and mg > VERDICT_MARGIN_YELLOW:
         yellow.append(f"interreflections left out by a close margin ({mg:.2f} of the threshold)")
