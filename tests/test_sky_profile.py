@@ -10,26 +10,15 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.metrics import ssim, tonemap, tonemap_scale
 from objcam.solvers.skyprofile import row_profile, sky_profile
+from tests.toy_scenes import lobe_scene
 
 H = 16
 
 
 def _scene(seed: int, visibility: float | None):
-    """A (1, M, N) over the upper half of a 16 x 32 grid: clamped cosine lobes of M random normals (a Lambertian
-    kernel: blind to a sky's odd azimuthal harmonics of order >= 3), times a random 0/1 visibility per (pixel,
-    texel) when ``visibility`` is given (shadows: every direction's column its own)."""
-    rng = np.random.default_rng(seed)
-    grid = EnvGrid(H)
-    texel_index = np.arange(grid.n_texels // 2)  # rows 0-7: above the horizon
-    d = grid.directions().reshape(-1, 3)[texel_index]
-    n = rng.normal(size=(800, 3))
-    n[:, 2] = np.abs(n[:, 2]) + 0.5
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    omega = grid.solid_angles().reshape(-1)[texel_index]
-    A = np.maximum(n @ d.T, 0.0) * omega[None, :]
-    if visibility is not None:
-        A = A * (rng.random(A.shape) < visibility)
-    return grid, texel_index, A[None].astype(np.float32), omega, rng
+    """tests.toy_scenes.lobe_scene on a 16 x 32 grid, with the kept texels' solid angles (sr)."""
+    grid, texel_index, A, rng = lobe_scene(seed, visibility, H)
+    return grid, texel_index, A, grid.solid_angles().reshape(-1)[texel_index], rng
 
 
 def _data(A: np.ndarray, x: np.ndarray, rng, noise: float = 0.01) -> np.ndarray:

@@ -5,28 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from objcam.envmap import EnvGrid
 from objcam.metrics import ssim, tonemap, tonemap_scale
 from objcam.solvers.sources import compact_sources
+from tests.toy_scenes import lobe_scene
 
 H = 16
 
 
 def _scene(seed: int, visibility: float | None):
-    """A (1, M, N) over the upper half of a 16 x 32 grid: cosine lobes of M random normals (smooth in direction:
-    a lamp's place is barely seen), times a random 0/1 visibility per (pixel, texel) when ``visibility`` is given
-    (shadows: every direction's column its own)."""
-    rng = np.random.default_rng(seed)
-    grid = EnvGrid(H)
-    texel_index = np.arange(grid.n_texels // 2)  # rows 0-7: above the horizon
-    d = grid.directions().reshape(-1, 3)[texel_index]
-    n = rng.normal(size=(800, 3))
-    n[:, 2] = np.abs(n[:, 2]) + 0.5
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    A = np.maximum(n @ d.T, 0.0) * grid.solid_angles().reshape(-1)[texel_index][None, :]
-    if visibility is not None:
-        A = A * (rng.random(A.shape) < visibility)
-    return grid, texel_index, A[None].astype(np.float32), rng
+    return lobe_scene(seed, visibility, H)
 
 
 def _data(A: np.ndarray, x: np.ndarray, rng, noise: float = 0.01) -> np.ndarray:

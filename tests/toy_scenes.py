@@ -94,3 +94,22 @@ def solve_toy(tr, grid, y: np.ndarray, sigma_abs: float, **params):
                                                      sigma_abs)
     assert kkt.max() < 1e-6
     return X, info, rejected
+
+
+def lobe_scene(seed: int, visibility: float | None, height: int = 16):
+    """(grid, texel_index (N,), A (1, M, N) float32, rng): the upper half of a ``height`` x 2 ``height`` grid seen
+    by M = 800 clamped cosine lobes of random normals (a Lambertian kernel, smooth in direction: a lamp's place is
+    barely seen, and blind to a sky's odd azimuthal harmonics of order >= 3), times a random 0/1 visibility per
+    (pixel, texel) when ``visibility`` is given (shadows: every direction's column its own). ``rng`` continues
+    the draws, for the photo's noise."""
+    rng = np.random.default_rng(seed)
+    grid = EnvGrid(height)
+    texel_index = np.arange(grid.n_texels // 2)  # the rows above the horizon
+    d = grid.directions().reshape(-1, 3)[texel_index]
+    n = rng.normal(size=(800, 3))
+    n[:, 2] = np.abs(n[:, 2]) + 0.5
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    A = np.maximum(n @ d.T, 0.0) * grid.solid_angles().reshape(-1)[texel_index][None, :]
+    if visibility is not None:
+        A = A * (rng.random(A.shape) < visibility)
+    return grid, texel_index, A[None].astype(np.float32), rng
