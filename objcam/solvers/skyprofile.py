@@ -41,7 +41,7 @@ class SkyProfileResult:
 
     x: np.ndarray  # (N, 3)
     info: dict = field(default_factory=dict)
-    sky: np.ndarray | None = None  # (N,) bool: the texels given as their row's mean; None when not taken
+    sky: np.ndarray | None = None  # (N,) bool: the texels given as one value per row; None when not taken
 
 
 def row_profile(x: np.ndarray, rows: np.ndarray, sky: np.ndarray, omega: np.ndarray) -> np.ndarray:

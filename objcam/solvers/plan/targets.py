@@ -36,7 +36,7 @@ class TargetSolution:
     unknown and estimated; both None for a known albedo.
     fine: (envmap, mask) on a supersampled A's grid when ``envmap`` and ``mask`` are their area average.
     rejected: (M,) bool, A's rows the solve dropped as outliers (objcam.solvers.outliers); None when none were.
-    profile: (N,) bool over A's texels, those the map gives as their row's mean (objcam.solvers.skyprofile); None
+    profile: (N,) bool over A's texels, those the map gives as one value per row (objcam.solvers.skyprofile); None
     when the map is as solved.
     """
 
