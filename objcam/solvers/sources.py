@@ -137,10 +137,7 @@ def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray
     x = np.asarray(x, np.float64)
     Y = np.asarray(y, np.float64)[use]
 
-    def misfit(z: np.ndarray) -> tuple[np.ndarray, float]:
-        return fit_residual(A, use, Y, z)
-
-    r0, ss0 = misfit(x)
+    r0, ss0 = fit_residual(A, use, Y, x)
     m = int(Y.size)
     tol = float(np.sqrt(2.0 / max(m, 1)) * ss0)  # the chi-squared's spread, in the fit's own units
     lum = x.mean(axis=1)
@@ -176,7 +173,7 @@ def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray
             cur = base
             for j, k in enumerate(choice):
                 cur[blob[k]] += amp[j]
-            r, ss = misfit(cur)
+            r, ss = fit_residual(A, use, Y, cur)
             rec["collapsed"] = True
         else:
             rec["collapsed"] = False
