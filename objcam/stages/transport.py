@@ -160,11 +160,13 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                f"in {metrics['seconds_total']:.1f} s")
     if choice is not None:
         summary += f"; env_height auto -> {height}: {choice['reason']}"
-    for kind, why in (("narrow", "black sky on box texels"), ("compact", "at compact sources")):
+    for kind, what in (("narrow", "narrow texel kernel (black sky on box texels)"),
+                       ("compact", "compact texel kernel (at compact sources)"),
+                       ("point", "point sources placed inside their texels by the photo")):
         names = [n for m in per_cam for n, r in m.get("texel_kernel_auto", {}).get("targets", {}).items()
                  if r["kernel"] == kind]
         if names:
-            summary += f"; {kind} texel kernel ({why}) for {', '.join(names)}"
+            summary += f"; {what} for {', '.join(names)}"
     return StageOutputs(metrics=metrics, summary=summary)
 
 

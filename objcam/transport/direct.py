@@ -231,6 +231,7 @@ class DirectModel:
         gamma = np.arccos(np.clip(cosmin, -1.0, 1.0)) + 1e-6
         gamma[nlen < 1e-3 * nh] = np.pi
         self.nbar = nbar
+        self.n_sin = np.sin(np.minimum(gamma, HALF_PI)) + 1e-7  # (M,) w above every normal's horizon: nbar.w > this
         h = tab.grid.height
         beta = tab.beta_row[None, :]
         g = gamma[:, None] + beta  # (M, H)
@@ -276,6 +277,7 @@ class DirectModel:
         alpha = np.minimum(alpha_s, alpha_b)
         self.occ_thr = np.cos(np.minimum(np.pi, alpha[:, None] + beta)) - 1e-7  # (M, H)
         self.occ_all = alpha >= np.pi - 1e-9
+        self.occ_cos = np.cos(np.minimum(np.pi, alpha)) - 1e-7  # (M,) the cone alone (point sources)
 
         # support plane rules
         free = np.ones((self.m, h), bool)

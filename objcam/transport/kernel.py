@@ -55,9 +55,10 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
-    """{target: {"chi2", "values", "dark_sky_area", "envmap", "mask"}} of the default solve of ``targets`` on
-    the Transport ``tr`` (the verdict's chi2 per fitted value and its share of black sky,
-    objcam.solvers.plan.verdict; the solved (H, W, 3) envmap and its (H, W) mask). Without solve.sky_profile:
+    """{target: {"chi2", "values", "dark_sky_area", "envmap", "mask", "y", "fitted"}} of the default solve of
+    ``targets`` on the Transport ``tr`` (the verdict's chi2 per fitted value and its share of black sky,
+    objcam.solvers.plan.verdict; the solved (H, W, 3) envmap and its (H, W) mask; the target at A's rows (M, 3)
+    and the (M,) pixels the solve fitted). Without solve.sky_profile:
     the pilot judges the A, and the black rings a profile would hide are what asks for the narrow one."""
     from objcam.solvers.plan.capture import solve_capture
     from objcam.solvers.plan.params import SolveParams
@@ -71,9 +72,10 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     out = {}
     for t in targets:
         v = sols[t.name].info.get("verdict", {})
-        out[t.name] = {"chi2": float(v.get("chi2", np.inf)), "values": int(data[t.name].use.sum()) * 3,
+        d, rej = data[t.name], sols[t.name].rejected
+        out[t.name] = {"chi2": float(v.get("chi2", np.inf)), "values": int(d.use.sum()) * 3,
                        "dark_sky_area": float(v.get("dark_sky_area", 0.0)), "envmap": sols[t.name].envmap,
-                       "mask": sols[t.name].mask}
+                       "mask": sols[t.name].mask, "y": d.y, "fitted": d.use if rej is None else d.use & ~rej}
     return out
 
 
@@ -113,9 +115,7 @@ def compact_transport(tr, direct, texels: np.ndarray):
     ``direct``: the box A's direct-light model (objcam.transport.direct.SplitDirect). Returns (Transport, the
     changed columns' positions)."""
     import copy
-    import dataclasses
 
-    from objcam.solvers.regularization import _block_rows
     from objcam.transport.direct import DirectStats, SplitDirect
 
     pos = np.flatnonzero(np.isin(tr.texel_index, texels))
@@ -127,8 +127,18 @@ def compact_transport(tr, direct, texels: np.ndarray):
         return c
 
     narrow = SplitDirect([(rows, narrowed(dm)) for rows, dm in direct.parts], direct.m)
+    return replace_direct(tr, pos, narrow.columns(tex) - direct.columns(tex)), pos
+
+
+def replace_direct(tr, pos: np.ndarray, delta: np.ndarray):
+    """A copy of the Transport ``tr`` with ``delta`` (C, M, B) added to its columns ``pos`` (B,) (a change of their
+    direct light; the indirect part kept) and its Gram matrix updated to match."""
+    import dataclasses
+
+    from objcam.solvers.regularization import _block_rows
+
     A = tr.A.copy()
-    A[:, :, pos] += narrow.columns(tex) - direct.columns(tex)
+    A[:, :, pos] += delta
     G = np.array(tr.gram(), np.float64)
     step = _block_rows(A.shape[2])  # float64 row blocks of A, as the Gram matrix itself is accumulated
     for c in range(A.shape[0]):
@@ -140,18 +150,55 @@ def compact_transport(tr, direct, texels: np.ndarray):
         G[c][pos, :] = cols.T
     out = dataclasses.replace(tr, A=A)
     out._gram = G
-    return out, pos
+    return out
+
+
+def point_sources(tr, direct, box: dict[str, dict], names: list[str]) -> dict[str, list]:
+    """{target: the point sources (objcam.transport.points.PointSource) found in the bright blobs of its box
+    pilot ``box[target]``} on the box Transport ``tr`` with the direct-light model ``direct``."""
+    from objcam.solvers.sources import bright_blobs
+    from objcam.transport.points import MAX_BLOBS, find_sources
+
+    found = {}
+    for name in names:
+        p = box[name]
+        x = np.asarray(p["envmap"], np.float64).reshape(-1, 3)[tr.texel_index]
+        solved = np.asarray(p["mask"], bool).ravel()[tr.texel_index]
+        lum = np.where(solved, x @ _LUMA, 0.0)
+        blobs = sorted(bright_blobs(lum, tr.grid, tr.texel_index), key=lambda b: -float(lum[b].sum()))[:MAX_BLOBS]
+        found[name] = find_sources(direct, tr.grid, tr.texel_index, tr.A, p["y"], p["fitted"], x, blobs)
+    return found
+
+
+def point_transport(tr, direct, sources: list):
+    """(the box Transport ``tr`` with point-source columns at ``sources`` (objcam.transport.points), the changed
+    columns' positions)."""
+    from objcam.transport.points import point_columns
+
+    pos, delta, _ = point_columns(direct, tr.grid, tr.texel_index, sources)
+    return (replace_direct(tr, pos, delta) if pos.size else tr), pos
 
 
 def pick(results: dict[str, dict[str, dict]], names: list[str], joint: bool) -> dict[str, str]:
-    """{target: candidate} with the lowest chi2 among the candidates (``results``: candidate -> target -> pilot
-    result; "box" holds every target). joint: one candidate for all ``names``, by the chi2 summed over them,
-    among the candidates solved for all of them."""
+    """{target: candidate}: box texels unless a candidate's fit beats theirs by more than the chi-squared's own
+    spread (sqrt(2 / n) x the box's chi2 per value, n fitted values: the rule of objcam.solvers.sources and
+    objcam.solvers.skyprofile; a fit better by less is not told from box texels by the photo), then the lowest
+    chi2 among those that do (``results``: candidate -> target -> pilot result; "box" holds every target).
+    joint: one candidate for all ``names``, by the chi2 summed over them, among the candidates solved for all."""
     if joint:
         full = [c for c, r in results.items() if all(n in r for n in names)]
-        best = min(full, key=lambda c: sum(results[c][n]["chi2"] * results[c][n]["values"] for n in names))
+        total = {c: sum(results[c][n]["chi2"] * results[c][n]["values"] for n in names) for c in full}
+        n_all = sum(results["box"][n]["values"] for n in names)
+        line = total["box"] * (1.0 - np.sqrt(2.0 / max(n_all, 1)))
+        best = min(full, key=lambda c: total[c] if c == "box" or total[c] < line else np.inf)
         return {n: best for n in names}
-    return {n: min((c for c in results if n in results[c]), key=lambda c: results[c][n]["chi2"]) for n in names}
+    out = {}
+    for n in names:
+        box = results["box"][n]
+        line = box["chi2"] * (1.0 - np.sqrt(2.0 / max(box["values"], 1)))
+        ok = [c for c in results if n in results[c] and (c == "box" or results[c][n]["chi2"] < line)]
+        out[n] = min(ok, key=lambda c: results[c][n]["chi2"])
+    return out
 
 
 def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, noise, model_choice: str | None,
@@ -198,11 +245,31 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
         asked = targets if joint else [t for t in targets if grid_blobs[t.name].size]
         results["compact"] = pilot(art, asked, compact, capture)
         metrics["compact_texels"] = int(pos.size)
-    choice = pick(results, names, joint)  # "compact" only where results has it, so compact and pos are set
-    group = {"box": sub, "narrow": sub + "k", "compact": sub + "c"}
+    points: dict[str, tuple] = {}  # group -> (Transport, changed positions, targets)
+    if direct is not None:
+        found = point_sources(box_tr, direct, box, names)
+        with_src = [t for t in targets if found[t.name]]
+        # each target its own sources (another target's lamp is not this one's), one A for a joint solve
+        parts = [(sub + "p", with_src)] if joint else [(f"{sub}p{i}", [t]) for i, t in enumerate(with_src)]
+        for g, ts in parts if with_src else []:
+            tr_p, ppos = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
+            if ppos.size:
+                points[g] = (tr_p, ppos, [t.name for t in ts])
+                got = pilot(art, targets if joint else ts, tr_p, capture)
+                results.setdefault("point", {}).update(got)
+        if with_src:
+            metrics["point_sources"] = {t.name: [s.record() for s in found[t.name]] for t in with_src}
+    choice = pick(results, names, joint)  # a candidate only where results has it, so its A and columns are set
+    groups = {"box": sub, "narrow": sub + "k", "compact": sub + "c"}
     if "compact" in choice.values():
         write_columns(out / sub, out / (sub + "c"), compact.A, pos, compact._gram)
-    mapping.update({n: group[c] for n, c in choice.items()})
+    group = {n: groups.get(c) for n, c in choice.items()}
+    for g, (tr_p, ppos, owners) in points.items():
+        took = [n for n in owners if choice[n] == "point"]
+        if took:
+            write_columns(out / sub, out / g, tr_p.A, ppos, tr_p._gram)
+        group.update({n: g for n in took})
+    mapping.update(group)
     for g in (sub, sub + "k"):
         if g not in mapping.values() and (out / g).exists():
             shutil.rmtree(out / g)
