@@ -90,6 +90,8 @@ def test_point_light_is_the_cosine_times_the_sphere_s_shadow(scene):
     blind = copy.copy(dm)  # broken: cones that claim nothing can block the light
     blind.occ_cos = np.full(dm.m, 2.0)
     assert np.all(point_direct(blind, w)[0, plane[dark], 0] > 0)
+    colour = DirectModel(dm.geo, s, ENV_H, 3, rays=4, seed=0, image_shape=(SIZE, SIZE))  # C = 3: grey albedos
+    assert np.allclose(point_direct(colour, w)[:, :, 0], got[None], rtol=1e-5, atol=1e-7)
     part = point_direct(dm, w, samples=4)[0, :, 0]
     assert abs(part.sum() / got.sum() - 1) < 0.02  # measured: 0.3%
 

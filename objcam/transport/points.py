@@ -133,7 +133,7 @@ def point_direct(dm, dirs: np.ndarray, samples: int | None = None) -> np.ndarray
                                cond=lambda i, *_: i < k, body=body, labels=("i", "acc"))
         dr.eval(acc)
         v = np.asarray(acc, dtype=np.float32)
-        out[:, pix[a:b], di[a:b]] = (v.reshape(1, -1) if v.ndim == 1 else v.T) * scale
+        out[:, pix[a:b], di[a:b]] = (v.reshape(1, -1) if v.ndim == 1 else v) * scale  # Color3f: (3, lanes)
     return out
 
 
