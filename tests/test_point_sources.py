@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 
 from objcam.envmap import EnvGrid
-from objcam.scene import SceneDescription
-from objcam.transport import load_transport
-from objcam.transport.direct import DirectModel, SplitDirect
-from objcam.transport.geometry import SceneGeometry, primary_samples
-from objcam.transport.points import find_sources, grid_directions, point_columns, point_direct
 from objcam.pipeline.stage import StageInputs
 from objcam.stages import transport as stage
-from tests.test_transport import R, SIZE, _sphere_hit, _write_artifact, art  # noqa: F401 (fixture)
+from objcam.transport import load_transport
+from objcam.transport.direct import DirectModel, SplitDirect
+from objcam.transport.geometry import primary_samples
+from objcam.transport.points import find_sources, grid_directions, point_columns, point_direct
+from tests.test_transport import R, SIZE, _sphere_hit, _write_artifact, art, hit_samples  # noqa: F401 (fixture)
 
 ENV_H = 16
 LAMP_UV = (3.9, 12.15)  # grid coordinates (rows, columns): elevation 46.1 deg, azimuth 136.7 deg (the sphere's
@@ -27,11 +26,7 @@ LAMP = 400.0  # the lamp's energy over its texel's solid angle (radiance units o
 
 @pytest.fixture(scope="module")
 def scene(art):  # noqa: F811
-    folder, cam = art
-    desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
-    geo = SceneGeometry.load(desc, folder, env_height=ENV_H)
-    s = primary_samples(geo, cam, 1, 32, np.arange(SIZE * SIZE), SIZE, seed=0)
-    s = s.subset(s.hit.any(axis=1))
+    geo, s = hit_samples(art, ENV_H, 32)
     dm = DirectModel(geo, s, ENV_H, 1, rays=4, seed=0, image_shape=(SIZE, SIZE))
     grid = EnvGrid(ENV_H)
     return s, SplitDirect([(np.arange(s.hit.shape[0]), dm)], s.hit.shape[0]), grid

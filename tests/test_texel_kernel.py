@@ -9,21 +9,15 @@ import numpy as np
 import pytest
 
 from objcam.envmap import EnvGrid
-from objcam.scene import SceneDescription
 from objcam.transport import load_transport
 from objcam.transport.direct import DirectModel
-from objcam.transport.geometry import SceneGeometry, primary_samples
 from objcam.transport.kernel import NARROW
-from tests.test_transport import ENV_H, SIZE, _run, _sphere_hit, _write_artifact, art  # noqa: F401 (fixture)
+from tests.test_transport import ENV_H, SIZE, _run, _sphere_hit, _write_artifact, art, hit_samples  # noqa: F401
 
 
 @pytest.fixture(scope="module")
 def models(art):  # noqa: F811
-    folder, cam = art
-    desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
-    geo = SceneGeometry.load(desc, folder, env_height=ENV_H)
-    s = primary_samples(geo, cam, 1, 16, np.arange(SIZE * SIZE), SIZE, seed=0)
-    s = s.subset(s.hit.any(axis=1))
+    geo, s = hit_samples(art)
     box = DirectModel(geo, s, ENV_H, 1, rays=4, seed=0, image_shape=(SIZE, SIZE))
     narrow = DirectModel(geo, s, ENV_H, 1, rays=4, seed=0, image_shape=(SIZE, SIZE), kernel=NARROW)
     return s, box, narrow

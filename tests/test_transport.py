@@ -70,14 +70,20 @@ def art(tmp_path_factory) -> tuple[Path, Camera]:
     return folder, _write_artifact(folder, cams=2)
 
 
+def hit_samples(art, env_height: int = ENV_H, n_sub: int = 16):
+    """(SceneGeometry, PixelSamples) of the scene ``art`` (folder, camera): ``n_sub`` sub-pixel samples (seed 0) for
+    the pixels that see a surface."""
+    folder, cam = art
+    desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
+    geo = SceneGeometry.load(desc, folder, env_height=env_height)
+    s = primary_samples(geo, cam, 1, n_sub, np.arange(SIZE * SIZE), SIZE, seed=0)
+    return geo, s.subset(s.hit.any(axis=1))
+
+
 @pytest.fixture(scope="module")
 def model(art):
     """DirectModel (K=4 rays, S=16 sub-pixel samples) and its SceneGeometry for the pixels that see a surface."""
-    folder, cam = art
-    desc = SceneDescription.model_validate_json((folder / "scene.json").read_text())
-    geo = SceneGeometry.load(desc, folder, env_height=ENV_H)
-    s = primary_samples(geo, cam, 1, 16, np.arange(SIZE * SIZE), SIZE, seed=0)
-    s = s.subset(s.hit.any(axis=1))
+    geo, s = hit_samples(art)
     return geo, s, DirectModel(geo, s, ENV_H, 1, rays=4, seed=0, image_shape=(SIZE, SIZE))
 
 
