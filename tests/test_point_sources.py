@@ -154,7 +154,7 @@ def test_auto_gives_a_sub_texel_lamp_its_point_column(tmp_path, scene):
     assert index["t0"] == "cam0p0"
     tp = load_transport(tmp_path / "auto", "t0")
     at = np.isin(tp.texel_index, tp.attrs["narrow_texels"])
-    assert list(tp.texel_index[at]) == [j]
+    assert list(tp.texel_index[at]) == [j] and tp.attrs["point_sources"] == m["point_sources"]["t0"]
     assert np.array_equal(tp.A[:, :, ~at], tb.A[:, :, ~at]) and not np.allclose(tp.A[:, :, at], tb.A[:, :, at])
     G = tp.gram()
     assert np.allclose(G[0], tp.A[0].astype(np.float64).T @ tp.A[0].astype(np.float64), rtol=1e-6, atol=1e-9)

@@ -172,11 +172,11 @@ def point_sources(tr, direct, box: dict[str, dict], names: list[str]) -> dict[st
 
 def point_transport(tr, direct, sources: list):
     """(the box Transport ``tr`` with point-source columns at ``sources`` (objcam.transport.points), the changed
-    columns' positions)."""
+    columns' positions, the sources used: one a texel)."""
     from objcam.transport.points import point_columns
 
-    pos, delta, _ = point_columns(direct, tr.grid, tr.texel_index, sources)
-    return (replace_direct(tr, pos, delta) if pos.size else tr), pos
+    pos, delta, used = point_columns(direct, tr.grid, tr.texel_index, sources)
+    return (replace_direct(tr, pos, delta) if pos.size else tr), pos, used
 
 
 def pick(results: dict[str, dict[str, dict]], names: list[str], joint: bool) -> dict[str, str]:
@@ -252,9 +252,9 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
         # each target its own sources (another target's lamp is not this one's), one A for a joint solve
         parts = [(sub + "p", with_src)] if joint else [(f"{sub}p{i}", [t]) for i, t in enumerate(with_src)]
         for g, ts in parts if with_src else []:
-            tr_p, ppos = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
+            tr_p, ppos, used = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
             if ppos.size:
-                points[g] = (tr_p, ppos, [t.name for t in ts])
+                points[g] = (tr_p, ppos, [t.name for t in ts], used)
                 got = pilot(art, targets if joint else ts, tr_p, capture)
                 results.setdefault("point", {}).update(got)
         if with_src:
@@ -264,10 +264,10 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
     if "compact" in choice.values():
         write_columns(out / sub, out / (sub + "c"), compact.A, pos, compact._gram)
     group = {n: groups.get(c) for n, c in choice.items()}
-    for g, (tr_p, ppos, owners) in points.items():
+    for g, (tr_p, ppos, owners, used) in points.items():
         took = [n for n in owners if choice[n] == "point"]
         if took:
-            write_columns(out / sub, out / g, tr_p.A, ppos, tr_p._gram)
+            write_columns(out / sub, out / g, tr_p.A, ppos, tr_p._gram, {"point_sources": [s.record() for s in used]})
         group.update({n: g for n in took})
     mapping.update(group)
     for g in (sub, sub + "k"):

@@ -132,10 +132,12 @@ def add_to_columns(folder: str | Path, delta_fn, chunk_columns: int | None = Non
             progress.update(b - a)
 
 
-def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarray, gram: np.ndarray) -> None:
+def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarray, gram: np.ndarray,
+                  attrs: dict | None = None) -> None:
     """A group ``dst``: the group ``src`` with A's columns ``pos`` replaced by those of ``A`` (C, M, N) and its
-    Gram matrix ``gram`` (C, N, N) (objcam.transport.kernel's compact kernel). The stage's folder is temporary
-    until it finishes, so the copy needs no atomic step of its own; gram.npy is written as write_gram writes it."""
+    Gram matrix ``gram`` (C, N, N) (objcam.transport.kernel's compact kernel and point sources), ``attrs`` added
+    to its attributes. The stage's folder is temporary until it finishes, so the copy needs no atomic step of its
+    own; gram.npy is written as write_gram writes it."""
     import shutil
 
     import zarr
@@ -148,6 +150,7 @@ def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarr
         b = min(arr.shape[2], a + step)
         arr[:, :, a:b] = A[:, :, a:b]
     g.attrs["narrow_texels"] = [int(t) for t in np.asarray(g["texel_index"][...])[pos]]
+    g.attrs.update(attrs or {})
     _save_gram(dst, gram.shape[0], gram.shape[1], iter(gram))
 
 
