@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from objcam.metrics import LUMA
 from objcam.solvers.plan.defaults import VERDICT_DARK_YELLOW
 
 #: the narrow kernel's width, a fraction of the texel per side (0.25: 1.4 deg at 32 x 64, under the 2-deg lamps
@@ -51,7 +52,6 @@ DARK_TRIGGER = VERDICT_DARK_YELLOW
 #: the box solve, not a window or an overcast sun area (the suite's windows, courtyard's sun: 150+ texels)
 COMPACT_LEVEL = 10.0
 COMPACT_TEXELS = 9
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
@@ -90,7 +90,7 @@ def compact_blobs(envmap: np.ndarray, mask: np.ndarray) -> np.ndarray:
     from scipy.ndimage import binary_dilation, label
 
     h, w = mask.shape
-    lum = np.where(mask, np.asarray(envmap, np.float64) @ _LUMA, 0.0)
+    lum = np.where(mask, np.asarray(envmap, np.float64) @ LUMA, 0.0)
     lit = lum[mask & (lum > 0)]
     if lit.size == 0:
         return np.zeros((h, w), bool)
@@ -164,7 +164,7 @@ def point_sources(tr, direct, box: dict[str, dict], names: list[str]) -> dict[st
         p = box[name]
         x = np.asarray(p["envmap"], np.float64).reshape(-1, 3)[tr.texel_index]
         solved = np.asarray(p["mask"], bool).ravel()[tr.texel_index]
-        lum = np.where(solved, x @ _LUMA, 0.0)
+        lum = np.where(solved, x @ LUMA, 0.0)
         blobs = sorted(bright_blobs(lum, tr.grid, tr.texel_index), key=lambda b: -float(lum[b].sum()))[:MAX_BLOBS]
         found[name] = find_sources(direct, tr.grid, tr.texel_index, tr.A, p["y"], p["fitted"], x, blobs)
     return found

@@ -31,6 +31,7 @@ import numpy as np
 
 from objcam.dr_memory import padded
 from objcam.envmap import EnvGrid
+from objcam.metrics import LUMA
 from objcam.scene import use_mitsuba
 from objcam.solvers.sources import rim_of
 
@@ -45,7 +46,6 @@ SEARCH_FRACTION = 8
 #: a blob's core: its texels at or above this fraction of its peak luminance (the lattice covers them, grown by
 #: one texel)
 CORE_LEVEL = 0.5
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 @dataclass
@@ -191,9 +191,8 @@ def find_sources(direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray, 
     out, before the next."""
     rows_n = texel_index // grid.width
     cols_n = texel_index % grid.width
-    Au = np.asarray(A[:, use], np.float32)
-    r = y[use] - _predict(Au, x)
-    lum = x @ _LUMA
+    r = y[use] - _predict(A, x)[use]
+    lum = x @ LUMA
     found = []
     held = np.zeros(x.shape[0], bool)
     if blobs:
@@ -204,7 +203,7 @@ def find_sources(direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray, 
         near = np.union1d(blob, rim_of(blob, grid, texel_index, held))
         rim = rim_of(near, grid, texel_index, held)
         sky = np.median(x[rim], axis=0) if rim.size else np.zeros(3)
-        r_b = r + _predict(Au[:, :, near], x[near] - sky[None, :])
+        r_b = r + _predict(A[:, :, near][:, use], x[near] - sky[None, :])
         core = blob[lum[blob] >= CORE_LEVEL * lum[blob].max()]
         # coarse: the centres of the core texels and their neighbours
         cells = {(int(rows_n[p]) + dr_, (int(cols_n[p]) + dc) % grid.width)
