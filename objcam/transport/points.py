@@ -73,12 +73,6 @@ def grid_directions(grid: EnvGrid, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(phi) * np.sin(theta), np.sin(phi) * np.sin(theta), np.cos(theta)], axis=-1)
 
 
-def _texel_at(grid: EnvGrid, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    r = np.clip(np.floor(u).astype(np.int64), 0, grid.height - 1)
-    c = np.floor(np.asarray(v)).astype(np.int64) % grid.width
-    return r * grid.width + c
-
-
 def point_direct(dm, dirs: np.ndarray, samples: int | None = None) -> np.ndarray:
     """(C, M, D) float32 direct light of point sources of unit energy (radiance x solid angle) in the directions
     ``dirs`` (D, 3), for the pixels of the DirectModel ``dm``: rho / pi x the mean over the pixel's first
@@ -164,15 +158,13 @@ def _fit(cols: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     residual r (M, 3) and the drop in the sum of squares (D,) they give."""
     cols = np.asarray(cols, np.float64)
     amp = np.zeros((cols.shape[2], 3))
+    gain = np.zeros(cols.shape[2])
     for c in range(3):
         k = cols[0] if cols.shape[0] == 1 else cols[c]
         num = k.T @ r[:, c]
         den = np.einsum("md,md->d", k, k)
         amp[:, c] = np.where(den > 0, np.maximum(num, 0.0) / np.maximum(den, 1e-300), 0.0)
-    gain = np.zeros(cols.shape[2])
-    for c in range(3):
-        k = cols[0] if cols.shape[0] == 1 else cols[c]
-        gain += amp[:, c] * (k.T @ r[:, c])
+        gain += amp[:, c] * num
     return amp, gain
 
 
@@ -215,19 +207,18 @@ def find_sources(direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray, 
         centre = (float(u[best]), float(v[best]))
         for level, step in enumerate(REFINE_STEPS):
             u, v = _lattice(centre, step, grid)
-            search = level == 0  # the finer lattices with every sample
-            _, gain = _fit(split_point_direct(direct, grid_directions(grid, u, v), search)[:, use], r_b)
+            dirs = grid_directions(grid, u, v)
+            cols = split_point_direct(direct, dirs, level == 0)[:, use]  # the finer lattices with every sample
+            amp, gain = _fit(cols, r_b)
             best = int(np.argmax(gain))
             centre = (float(u[best]), float(v[best]))
-        w = grid_directions(grid, np.array([centre[0]]), np.array([centre[1]]))
-        col = split_point_direct(direct, w, False)
-        amp, gain = _fit(col[:, use], r_b)
-        if gain[0] <= 0:
+        if gain[best] <= 0:  # the last lattice's columns are the point's own (all samples)
             continue
-        r = r_b - _predict(col[:, use], amp)
-        j = int(_texel_at(grid, np.array([centre[0]]), np.array([centre[1]]))[0])
+        r = r_b - _predict(cols[:, :, best : best + 1], amp[best : best + 1])
+        row, col = grid.texel_of(dirs[best])
+        j = int(row * grid.width + col)
         omega = float(grid.solid_angles().ravel()[j])
-        found.append(PointSource(w[0], j, amp[0] / omega, float(gain[0])))
+        found.append(PointSource(dirs[best], j, amp[best] / omega, float(gain[best])))
     return found
 
 
