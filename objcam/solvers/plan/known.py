@@ -91,8 +91,9 @@ def known_sources(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarr
 def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np.ndarray, solved: tuple,
                      ls: float, params: SolveParams, weak: np.ndarray | None, sigma_abs: float | None) -> tuple:
     """params.sky_profile=auto (objcam.solvers.skyprofile) after the edge solve ``solved`` = (KKT, objective,
-    iterations, edge record, rejected rows) of X (N, 3), on the pixels ``fitted`` it fitted: where the test keeps the
-    profile, the envmap solved again on the profile model (step 4; a supersampled A keeps the row means). Returns
+    iterations, edge record, rejected rows) of X (N, 3), on the pixels ``fitted`` it fitted: where the row means'
+    test fails, the profile model's own fit tested (step 3b); where a test keeps the profile, the envmap solved
+    again on the profile model (step 4; a supersampled A keeps the row means and has no step 3b). Returns
     (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool texels given as
     their row's value or None)."""
     kkt, obj, iters, edge_info, rejected = solved
@@ -100,16 +101,28 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     inside = np.ones(len(tr.texel_index), bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
     got = sky_profile(tr.A, fitted, d.y, X, grid, tr.texel_index, inside, tr.solid_angle)
     rec = got.info
-    if got.sky is not None and tr.output_height == tr.env_height:
-        basis = profile_basis(P, tr.texel_index, grid, got.sky)
+    if got.candidate is not None and tr.output_height == tr.env_height:
+        basis = profile_basis(P, tr.texel_index, grid, got.candidate)
         first = edge_info
-        X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, ls, params.lr, params,
-                                                                   weak, sigma_abs, basis=basis)
-        iters += more
-        if "sources" in first:
-            edge_info["sources"] = first["sources"]
-        rec["resolved"] = {"unknowns": int(basis.shape[1])}
-    else:
+        keep = got.sky is not None
+        if not keep:  # the test on the profile model's own fit, not on the solved map's row means
+            from objcam.solvers.sources import fit_residual
+
+            plain = params.model_copy(update={"outliers": "keep"})  # on the pixels the map fitted
+            xp = solve_known_edges(tr, grid, fitted, d.y, ls, params.lr, plain, weak, sigma_abs, basis=basis)[0]
+            ss_fit = fit_residual(tr.A, fitted, d.y[fitted], xp)[1]
+            keep = abs(ss_fit - rec["ss_map"]) <= rec["ss_spread"]
+            rec.update({"ss_profile_fitted": ss_fit, "taken": bool(keep),
+                        "fitted_rise_over_spread": float((ss_fit - rec["ss_map"]) / max(rec["ss_spread"], 1e-300))})
+        if keep:
+            X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, ls, params.lr, params,
+                                                                       weak, sigma_abs, basis=basis)
+            iters += more
+            if "sources" in first:
+                edge_info["sources"] = first["sources"]
+            rec["resolved"] = {"unknowns": int(basis.shape[1])}
+            got.sky = got.candidate
+    elif got.sky is not None:
         X = got.x
     edge_info["sky_profile"] = rec
     return X, kkt, obj, iters, edge_info, rejected, got.sky

@@ -100,10 +100,11 @@ class SolveParams(BaseModel):
     sky_profile: Literal["auto", "off"] = Field(
         "auto", description="known albedo, prior=edges: 'auto': after the solve, when the sky outside the bright "
         "blobs (texels above 10 x the map's median, grown by one texel) set to its mean per lat-long row raises the "
-        "fit's misfit by less than its own chi-squared spread, the envmap is solved again on that model, one "
-        "unknown per row's sky texels (objcam.solvers.skyprofile: the edge prior draws azimuthal patches and dark "
+        "fit's misfit by less than its own chi-squared spread (or, failing that, the profile model's own fit on the "
+        "same pixels is within that spread of the map's, above or below), the envmap is solved again on that model, "
+        "one unknown per row's sky texels (objcam.solvers.skyprofile: the edge prior draws azimuthal patches and dark "
         "rings into a dim sky that the photo barely sees beside a lamp or the sun); 'off': the map as solved. "
-        "Measured: bench/results.md, issues 22 and 28, session 29")
+        "Measured: bench/results.md, issues 22 and 28, sessions 29 and 31")
     noise_model: Literal["brightness", "flat"] = Field(
         "brightness", description="known albedo, prior=edges, outliers huber or reject (keep is plain least squares, "
         "one noise): 'brightness': after the first edge steps the pixels are grouped by predicted brightness (bins a "
