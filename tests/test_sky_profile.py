@@ -119,29 +119,8 @@ def test_the_known_solve_takes_the_profile_and_solves_on_it():
     shadows of three spheres on a plane at 1% noise. The edge solve's patches give way to the profile model, solved
     again on it (one unknown per sky row): its rows are flat, the lamp where it was, the fit exact, and the map
     closer to the truth than the solve's own (measured 0.550 -> 0.637). Broken: sky_profile=off keeps the patches."""
-    from types import SimpleNamespace
-
-    from objcam.solvers.plan.known import _solve_target
-    from objcam.solvers.plan.params import SolveParams
-    from objcam.solvers.plan.targets import TargetData
-    from tests.toy_scenes import sphere_shadow_toy
-
     grid = EnvGrid(H)
-    tr, keep = sphere_shadow_toy(grid, 40)
-    theta, _ = grid.centres()
-    truth = np.repeat((0.05 + 0.05 * np.cos(theta))[..., None], 3, axis=2)
-    truth[2, 9] += 200.0  # a lamp ~22 deg from the zenith
-    clean = tr.predict(tr.x_from_envmap(truth))
-    rng = np.random.default_rng(0)
-    photo = clean + 0.01 * np.median(clean[clean > 0]) * rng.normal(size=clean.shape)
-    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
-    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
-    target = SimpleNamespace(noise_sigma=0.01, name="t")
-
-    def solve(mode):
-        return _solve_target(target, d, SolveParams(sky_profile=mode), {})
-
-    on, off = solve("auto"), solve("off")
+    truth, keep, (on, off) = _lamp_solves(grid, {(2, 9): 200.0}, 0.01, 0)  # a lamp ~22 deg from the zenith
     rec = on.info["edges"]["sky_profile"]
     assert rec["taken"] and rec["resolved"]["unknowns"] < len(keep) // 4
     assert on.info["kkt_residual_max"] < 1e-6 and "sky_profile" not in off.info["edges"]
@@ -162,6 +141,20 @@ def test_the_profile_is_tested_on_its_own_fit_not_on_the_maps_row_means():
     prior fits within one (measured 6.08 -> -0.88), so the profile is taken and solved; its map is closer to the
     truth (tonemapped SSIM 0.914 -> 0.951). Broken: testing only the row means (the step before session 31) or
     sky_profile=off keeps the patches."""
+    grid = EnvGrid(H)
+    truth, keep, (on, off) = _lamp_solves(grid, {(7, 3): 120.0, (7, 4): 80.0, (8, 3): 40.0}, 0.005, 1)
+    rec = on.info["edges"]["sky_profile"]
+    assert rec["rise_over_spread"] > 3.0  # the row means alone: not taken
+    assert abs(rec["fitted_rise_over_spread"]) <= 1.0 and rec["taken"] and "resolved" in rec
+    assert on.profile is not None and on.profile.sum() > len(keep) // 2
+    s_on, s_off = _tm_ssim_env(on.envmap, truth, keep), _tm_ssim_env(off.envmap, truth, keep)
+    assert s_on > s_off + 0.02, (s_off, s_on)
+
+
+def _lamp_solves(grid: EnvGrid, lamp: dict, noise: float, seed: int) -> tuple:
+    """(truth (H, 2H, 3), A's texels, the known solves at sky_profile auto and off) of a lamp (texel (row, col) ->
+    radiance added) over a sky that varies with elevation only, shadows of three spheres on a plane, ``noise``
+    relative Gaussian noise (tests.toy_scenes.sphere_shadow_toy)."""
     from types import SimpleNamespace
 
     from objcam.solvers.plan.known import _solve_target
@@ -169,26 +162,18 @@ def test_the_profile_is_tested_on_its_own_fit_not_on_the_maps_row_means():
     from objcam.solvers.plan.targets import TargetData
     from tests.toy_scenes import sphere_shadow_toy
 
-    grid = EnvGrid(H)
     tr, keep = sphere_shadow_toy(grid, 40)
     theta, _ = grid.centres()
     truth = np.repeat((0.05 + 0.05 * np.cos(theta))[..., None], 3, axis=2)
-    truth[7, 3] += 120.0
-    truth[7, 4] += 80.0
-    truth[8, 3] += 40.0
+    for (r, c), v in lamp.items():
+        truth[r, c] += v
     clean = tr.predict(tr.x_from_envmap(truth))
-    rng = np.random.default_rng(1)
-    photo = clean + 0.005 * np.median(clean[clean > 0]) * rng.normal(size=clean.shape)
+    rng = np.random.default_rng(seed)
+    photo = clean + noise * np.median(clean[clean > 0]) * rng.normal(size=clean.shape)
     y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
     d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
-    target = SimpleNamespace(noise_sigma=0.005, name="t")
-    on, off = (_solve_target(target, d, SolveParams(sky_profile=m), {}) for m in ("auto", "off"))
-    rec = on.info["edges"]["sky_profile"]
-    assert rec["rise_over_spread"] > 3.0  # the row means alone: not taken
-    assert abs(rec["fitted_rise_over_spread"]) <= 1.0 and rec["taken"] and "resolved" in rec
-    assert on.profile is not None and on.profile.sum() > len(keep) // 2
-    s_on, s_off = _tm_ssim_env(on.envmap, truth, keep), _tm_ssim_env(off.envmap, truth, keep)
-    assert s_on > s_off + 0.02, (s_off, s_on)
+    target = SimpleNamespace(noise_sigma=noise, name="t")
+    return truth, keep, [_solve_target(target, d, SolveParams(sky_profile=m), {}) for m in ("auto", "off")]
 
 
 def _tm_ssim_env(env: np.ndarray, truth: np.ndarray, keep: np.ndarray) -> float:
