@@ -35,6 +35,7 @@ from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_nois
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.solvers.skyprofile import profile_basis, sky_profile
+from objcam.solvers.sources import fit_residual
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
 
@@ -106,8 +107,6 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
         first = edge_info
         keep = got.sky is not None
         if not keep:  # the test on the profile model's own fit, not on the solved map's row means
-            from objcam.solvers.sources import fit_residual
-
             plain = params.model_copy(update={"outliers": "keep"})  # on the pixels the map fitted
             xp = solve_known_edges(tr, grid, fitted, d.y, ls, params.lr, plain, weak, sigma_abs, basis=basis)[0]
             ss_fit = fit_residual(tr.A, fitted, d.y[fitted], xp)[1]
@@ -121,11 +120,11 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             if "sources" in first:
                 edge_info["sources"] = first["sources"]
             rec["resolved"] = {"unknowns": int(basis.shape[1])}
-            got.sky = got.candidate
-    elif got.sky is not None:
-        X = got.x
+        profile = got.candidate if keep else None
+    else:  # no sky texel, or a supersampled A: the row means where their test kept them
+        X, profile = got.x, got.sky
     edge_info["sky_profile"] = rec
-    return X, kkt, obj, iters, edge_info, rejected, got.sky
+    return X, kkt, obj, iters, edge_info, rejected, profile
 
 
 def noise_per_value(target, d: TargetData) -> float | None:
