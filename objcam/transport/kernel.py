@@ -59,7 +59,9 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     ``targets`` on the Transport ``tr`` (the verdict's chi2 per fitted value and its share of black sky,
     objcam.solvers.plan.verdict; the solved (H, W, 3) envmap and its (H, W) mask; the target at A's rows (M, 3)
     and the (M,) pixels the solve fitted). Without solve.sky_profile:
-    the pilot judges the A, and the black rings a profile would hide are what asks for the narrow one."""
+    the pilot judges the A, and the black rings a profile would hide are what asks for the narrow one; without
+    solve.noise_fit: every candidate judged at the stated noise's prior (the transport's choice does not depend on
+    the solve's later weighting)."""
     from objcam.solvers.plan.capture import solve_capture
     from objcam.solvers.plan.params import SolveParams
     from objcam.solvers.plan.targets import TargetData
@@ -68,7 +70,7 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     data = {t.name: TargetData(tr, *target_rows(t.load_image(scene.folder), t.load_valid(scene.folder),
                                                 tr.downsample, tr.pixel_index)) for t in targets}
     sols = solve_capture(scene.model_copy(update={"targets": list(targets)}), data,
-                         SolveParams(sky_profile="off"), capture)
+                         SolveParams(sky_profile="off", noise_fit="off"), capture)
     out = {}
     for t in targets:
         v = sols[t.name].info.get("verdict", {})

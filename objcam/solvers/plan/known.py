@@ -16,6 +16,7 @@ solved in the Gram form on the merged envmap basis (objcam.solvers.basis). The s
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -23,7 +24,7 @@ import scipy.sparse as sp
 
 from objcam import solvers
 from objcam.envmap import EnvGrid
-from objcam.solvers.basis import MERGE_BLOCK_BYTES, merge_gram, restrict_weak, solved_edges, texel_basis
+from objcam.solvers.basis import MERGE_BLOCK_BYTES, merge_gram, restrict_weak, solved_edges, texel_basis, unknowns
 from objcam.solvers.chroma import luminance_with_chroma
 from objcam.solvers.edges import EdgeResult, solve_edges
 from objcam.solvers.lowrank import gram_lowrank, lowrank_update
@@ -61,11 +62,23 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
             X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
                                                                         weak, sigma_abs)
             fitted = use if rejected is None else use & ~rejected
+            noise_fit = fit_noise(target, d, fitted, X, params, weak) if ls_source != "param" else None
+            if noise_fit is not None and noise_fit["factor"] < 1.0:  # the photo is less noisy than stated
+                quieter = _with_noise(target, noise_fit["noise_sigma"])
+                ls, ls_source, auto_info = choose_ls(quieter, d, grid, params, linear=edges)
+                ls_source += f" (fitted: {noise_fit['factor']:.3g} x the stated noise)"
+                sigma_abs = noise_per_value(quieter, d) if params.outliers != "keep" else None
+                X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
+                                                                           weak, sigma_abs)
+                iters += more
+                fitted = use if rejected is None else use & ~rejected
             if params.sources != "off":  # issue 22: a bright blob the data cannot place, as a point source
                 X, edge_info["sources"] = known_sources(tr, grid, fitted, y, X)
             if params.sky_profile != "off":  # issues 22, 28: azimuthal detail the data cannot tell from none
                 X, kkt, obj, iters, edge_info, rejected, profile = with_sky_profile(
                     tr, grid, d, fitted, X, (kkt, obj, iters, edge_info, rejected), ls, params, weak, sigma_abs)
+            if noise_fit is not None:
+                edge_info["noise_fit"] = noise_fit
         else:
             X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
     solve_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -125,6 +138,35 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
         X, profile = got.x, got.sky
     edge_info["sky_profile"] = rec
     return X, kkt, obj, iters, edge_info, rejected, profile
+
+
+def fit_noise(target, d: TargetData, fitted: np.ndarray, X: np.ndarray, params: SolveParams,
+              weak: np.ndarray | None) -> dict | None:
+    """solve.noise_fit=auto: the record {chi2_stated, expected, factor, noise_sigma} of the edge solve's map X
+    (N, 3) on the pixels ``fitted`` (M,) bool against the target's stated (or estimated) noise
+    (objcam.solvers.plan.rules.noise_scale: factor < 1 when the residual is significantly below that noise;
+    noise_sigma: the per-photo-pixel relative noise the residual supports); None when off or the noise is unknown."""
+    from objcam.solvers.plan.rules import noise_scale
+    from objcam.solvers.plan.verdict import chi2_per_value
+
+    tr = d.transport
+    sigma_rel, _ = fitted_noise(target, d.pooled, d.pooled_ok, tr.downsample)
+    if params.noise_fit == "off" or params.auto_reg != "off" or not sigma_rel or not fitted.any():
+        return None
+    r, _ = fit_residual(tr.A, fitted, d.y[fitted], X)
+    chi2, _ = chi2_per_value(d.y[fitted], d.y[fitted] - r, sigma_rel)
+    factor, expected = noise_scale(chi2, r.size, unknowns(tr.texel_index, known_basis(tr, params, weak=weak)))
+    return {"chi2_stated": round(chi2, 5), "expected": round(expected, 5), "factor": round(factor, 5),
+            "noise_sigma": sigma_rel * max(int(tr.downsample), 1) * factor}
+
+
+def _with_noise(target, noise_sigma: float):
+    """A copy of the target (a pydantic model, or any object with attributes) with another ``noise_sigma``."""
+    if hasattr(target, "model_copy"):
+        return target.model_copy(update={"noise_sigma": noise_sigma})
+    out = copy.copy(target)
+    out.noise_sigma = noise_sigma
+    return out
 
 
 def noise_per_value(target, d: TargetData) -> float | None:

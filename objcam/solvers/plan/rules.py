@@ -20,6 +20,7 @@ from objcam.solvers.plan.defaults import (
     LS_HEIGHT,
     LS_NOISE_FACTOR,
     LS_RANGE,
+    NOISE_FIT_SPREADS,
     TEXEL_GROUP_JOINT,
     TEXEL_GROUP_KNOWN,
 )
@@ -75,6 +76,20 @@ def _noise_ls(target, pooled, pooled_ok, params: SolveParams, f: int, linear: bo
         factor = LS_NOISE_FACTOR * supersample**3
     ls = float(np.clip(factor * (sigma if linear else sigma**2), *LS_RANGE))
     return ls, f"{source} {sigma:.4f} per fitted pixel"
+
+
+def noise_scale(chi2: float, values: int, unknowns: int) -> tuple[float, float]:
+    """(factor on the stated noise, expected chi2) from a fit's chi-squared per value ``chi2`` at the stated noise,
+    over ``values`` fitted pixel values with ``unknowns`` unknowns per value's channel: 1 unless chi2 lies below the
+    expectation ``1 - unknowns / (values / 3)`` (a least-squares fit absorbs at most one value per unknown and
+    channel) by more than NOISE_FIT_SPREADS x sqrt(2 / values); then sqrt(chi2 / expected), the noise the residual
+    supports. Never above 1: a residual above the noise is model error, not noise (solve.noise_fit)."""
+    if values <= 0 or not np.isfinite(chi2):
+        return 1.0, float("nan")
+    expected = max(1.0 - 3.0 * unknowns / values, 0.5)
+    if chi2 >= expected - NOISE_FIT_SPREADS * np.sqrt(2.0 / values):
+        return 1.0, expected
+    return float(np.sqrt(max(chi2, 1e-6) / expected)), expected
 
 
 def fitted_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int) -> tuple[float | None, str]:
