@@ -237,3 +237,20 @@ def test_compare_summarises_families_and_pairs_targets():
              row("d", "lamp", 0.1, 0.9, 1.0, [1.0] * 4)]  # d: not in the base, not paired
     p = paired(base, other)
     assert p["n"] == 2 and p["better"] == 1 and p["worse"] == 0 and p["max"] == pytest.approx(0.05)
+
+
+def test_render_noise_is_the_median_pixels_not_the_fireflies():
+    """capture.toml's noise_sigma takes the render's noise at the median pixel (bench.hard.scene.median_pixel_noise):
+    a hundred fireflies on a bright object leave it at the median pixel's 1%, where the whole image's deviation
+    (RENDER_VERSION v3's measure, the broken setting) reads several times that."""
+    from bench.hard.scene import median_pixel_noise
+
+    rng = np.random.default_rng(0)
+    img = np.full((64, 64, 3), 1.0)
+    img[:16] = 8.0  # a bright object over a quarter of the image
+    half = 0.01 * rng.normal(size=img.shape)  # 1% of the median pixel, everywhere
+    half[:16] *= 4.0  # more noise on the object, as a path tracer's
+    half[rng.integers(0, 16, 100), rng.integers(0, 64, 100)] += 5.0  # fireflies
+    got = median_pixel_noise(img, half)
+    assert got == pytest.approx(0.01, rel=0.05)
+    assert float(np.std(half)) > 5 * got  # the v3 measure

@@ -4,7 +4,8 @@ truth/<render>/envmap.exr. Renders are cached (``renders/``) so a rerun only re-
 
 Noise: zero-mean Gaussian of ``level`` x the median pixel (over the positive channel values of the clean render),
 per pixel and channel, negatives KEPT (what black-level subtraction and read noise leave); capture.toml's
-``noise_sigma`` is hypot(level, the render's own relative noise), both at the median pixel.
+``noise_sigma`` is hypot(level, the render's own relative noise at the median pixel:
+bench.hard.scene.median_pixel_noise), both relative to the median pixel.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ from bench.hard.scene import look_at_camera, render
 
 DISTANCE = 0.4  # metres from the camera to the point it looks at
 AZIMUTH = -90.0  # the camera stands on the -y side
-RENDER_VERSION = "v3"  # part of the render cache's key: bump when bench/hard/scene.py changes what it renders
-# (v3: the envmap handed to Mitsuba in the contract's box form, bench.hard.scene.contract_bitmap)
+RENDER_VERSION = "v4"  # part of the render cache's key: bump when bench/hard/scene.py changes what it renders
+# (v3: the envmap handed to Mitsuba in the contract's box form, bench.hard.scene.contract_bitmap; v4: the render
+# noise measured at the median pixel, bench.hard.scene.median_pixel_noise)
 
 
 def log(msg: str) -> None:

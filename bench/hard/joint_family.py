@@ -65,7 +65,8 @@ def render_family(mesh: Path, camera: dict, envs: list[tuple[str, np.ndarray]], 
     for name, env in envs:
         # "-std": renders since the HDRIs are read in the standard convention (earlier ones saw them mirrored);
         # "-box": since the envmap reaches Mitsuba in the contract's box form (bench.hard.scene.contract_bitmap)
-        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp-std-box"
+        # "-med": since the render noise is measured at the median pixel (bench.hard.scene.median_pixel_noise)
+        key = f"{name}-{tag}-{albedo_object:g}on{albedo_support:g}-{camera['width']}px-{spp}spp-std-box-med"
         path = cache / f"{key}.npz" if cache is not None else None
         if path is not None and path.is_file():
             r = np.load(path)
