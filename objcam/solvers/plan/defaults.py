@@ -183,8 +183,8 @@ VERDICT_DARK_YELLOW = 0.02
 VERDICT_DARK_RED = 0.1
 
 #: solve.noise_fit (objcam.solvers.plan.rules.noise_scale): the stated noise is taken as overstated when the edge
-#: solve's chi-squared per value falls below its expectation (1 - unknowns / values) by more than this many of its
-#: own spreads sqrt(2 / values): 3, the usual line for "not chance" (at 48k values a chi2 under ~0.93 of the
-#: expectation). A convention, not fitted; measured on the hard suite and the core bench (bench/results.md, issue 22,
+#: solve's chi-squared per value falls below its expectation (1 - unknowns per channel / fitted pixels) by more than
+#: this many of its own spreads sqrt(2 / values): 3, the usual line for "not chance" (at 48k values a chi2 0.02
+#: under it). A convention, not fitted; measured on the hard suite and the core bench (bench/results.md, issue 22,
 #: session 32).
 NOISE_FIT_SPREADS = 3.0

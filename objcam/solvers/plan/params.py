@@ -107,10 +107,11 @@ class SolveParams(BaseModel):
         "Measured: bench/results.md, issues 22 and 28, sessions 29 and 31")
     noise_fit: Literal["auto", "off"] = Field(
         "auto", description="known albedo, prior=edges, ls from the noise: 'auto': when the edge solve's residual is "
-        "significantly below the stated (or estimated) noise (chi-squared per value under 1 - unknowns / values by "
-        "more than 3 of its own spreads), the photo is less noisy than stated: the prior's weight and the outlier "
-        "scale are set from the noise the residual supports (sigma x sqrt(chi2 / expected)) and the target solved "
-        "again (objcam.solvers.plan.rules.noise_scale; the verdict still reports chi2 against the stated noise). "
+        "significantly below the stated (or estimated) noise (chi-squared per value under 1 - unknowns per channel / "
+        "fitted pixels by more than 3 of its own spreads), the photo is less noisy than stated: the prior's weight "
+        "and the outlier scale are set from the noise the residual supports (sigma x sqrt(chi2 / expected)) and the "
+        "target solved again (objcam.solvers.plan.rules.noise_scale; the verdict still reports chi2 against the "
+        "stated noise). "
         "Never raises the noise: a residual above it is model error, not noise. 'off': the stated noise as is")
     noise_model: Literal["brightness", "flat"] = Field(
         "brightness", description="known albedo, prior=edges, outliers huber or reject (keep is plain least squares, "
