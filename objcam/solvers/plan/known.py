@@ -62,7 +62,7 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
             X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
                                                                         weak, sigma_abs)
             fitted = use if rejected is None else use & ~rejected
-            noise_fit = fit_noise(target, d, fitted, X, params, weak) if ls_source != "param" else None
+            noise_fit = fit_noise(target, d, fitted, X, params, weak)
             if noise_fit is not None and noise_fit["factor"] < 1.0:  # the photo is less noisy than stated
                 quieter = _with_noise(target, noise_fit["noise_sigma"])
                 ls, ls_source, auto_info = choose_ls(quieter, d, grid, params, linear=edges)
@@ -145,13 +145,15 @@ def fit_noise(target, d: TargetData, fitted: np.ndarray, X: np.ndarray, params: 
     """solve.noise_fit=auto: the record {chi2_stated, expected, factor, noise_sigma} of the edge solve's map X
     (N, 3) on the pixels ``fitted`` (M,) bool against the target's stated (or estimated) noise
     (objcam.solvers.plan.rules.noise_scale: factor < 1 when the residual is significantly below that noise;
-    noise_sigma: the per-photo-pixel relative noise the residual supports); None when off or the noise is unknown."""
+    noise_sigma: the per-photo-pixel relative noise the residual supports); None when off, when ls is not set
+    from the noise (given, or an auto_reg rule) or when the noise is unknown."""
     from objcam.solvers.plan.rules import noise_scale
     from objcam.solvers.plan.verdict import chi2_per_value
 
     tr = d.transport
     sigma_rel, _ = fitted_noise(target, d.pooled, d.pooled_ok, tr.downsample)
-    if params.noise_fit == "off" or params.auto_reg != "off" or not sigma_rel or not fitted.any():
+    from_noise = params.ls is None and params.auto_reg == "off"
+    if params.noise_fit == "off" or not from_noise or not sigma_rel or not fitted.any():
         return None
     r, _ = fit_residual(tr.A, fitted, d.y[fitted], X)
     chi2, _ = chi2_per_value(d.y[fitted], d.y[fitted] - r, sigma_rel)
