@@ -190,3 +190,95 @@ def test_the_summary_names_the_targets_that_took_the_profile():
            "c": {"edges": {}}, "d": {}}
     assert "one value per elevation row for a (" in sky_profile_phrase(per)
     assert sky_profile_phrase({"b": per["b"], "c": per["c"]}) == ""
+
+
+def test_misfit_allowance_is_the_spread_or_the_maps_excess_over_its_noise():
+    from objcam.solvers.skyprofile import misfit_allowance
+
+    # 20,000 values, 1,000 unknowns per channel: an honest fit leaves 0.85 x 20,000 x sigma^2 = 1.7 at sigma 0.01
+    assert misfit_allowance(1.7, 20_000, 1_000, 0.01) == pytest.approx((0.01 * 1.7, 0.0))  # the spread
+    allow, excess = misfit_allowance(2.5, 20_000, 1_000, 0.01)
+    assert excess == pytest.approx(0.8) and allow == pytest.approx(0.8)  # model error: 0.8 beyond the noise
+    assert misfit_allowance(2.5, 20_000, 1_000, None) == pytest.approx((0.025, 0.0))  # noise unknown: the spread
+    assert misfit_allowance(2.5, 2_000, 1_000, 0.01)[1] == pytest.approx(2.5 - 0.5 * 0.2)  # expectation >= 0.5
+
+
+def _lobe_solves(noise: float, seed: int, normal_error: float, sky_step: float, broken: bool = False) -> tuple:
+    """A light object's shading: 900 pixels of random normals (clamped cosine lobes) with a random 0/1 visibility
+    per (pixel, texel), under a lamp over a sky that varies with elevation (plus ``sky_step`` x 0.05 on one half of
+    the azimuths). The photo is made with the normals off by ``normal_error`` (a wrong mesh: model error the map
+    cannot express) and ``noise`` relative Gaussian noise; returns (truth (H, 2H, 3), kept texels, the known solves
+    at sky_profile auto and off). ``broken``: step 3b's allowance without the map's excess (the session-31 rule)."""
+    from types import SimpleNamespace
+
+    from objcam.solvers.plan import known
+    from objcam.solvers.plan.params import SolveParams
+    from objcam.solvers.plan.targets import TargetData
+    from objcam.transport.storage import Transport
+
+    grid = EnvGrid(H)
+    keep = np.arange(grid.n_texels // 2)
+    d, om = grid.directions().reshape(-1, 3)[keep], grid.solid_angles().reshape(-1)[keep]
+    rng = np.random.default_rng(seed)
+    side = 30
+    n = rng.normal(size=(side * side, 3))
+    n[:, 2] = np.abs(n[:, 2]) + 0.5
+    vis = rng.random((n.shape[0], keep.size)) < 0.7
+    n2 = n / np.linalg.norm(n, axis=1, keepdims=True) + normal_error * rng.normal(size=n.shape)
+    A, A_true = (np.maximum((v / np.linalg.norm(v, axis=1, keepdims=True)) @ d.T, 0) * om * vis for v in (n, n2))
+    theta, phi = grid.centres()
+    truth = np.repeat((0.05 + 0.05 * np.cos(theta) + sky_step * 0.05 * (np.cos(phi) > 0))[..., None], 3, axis=2)
+    truth[3, 9] += 300.0
+    clean = A_true @ truth.reshape(-1, 3)[keep]
+    y = clean + noise * np.median(clean) * rng.normal(size=clean.shape)
+    m = y.shape[0]
+    tr = Transport(A=A[None].astype(np.float32), pixel_index=np.arange(m), image_shape=(side, side), downsample=1,
+                   texel_index=keep, env_height=H, directions=d, solid_angle=om, albedo=np.ones((m, 3), np.float32),
+                   unknown_albedo=np.zeros(m, bool), coverage=np.ones(m, np.float32),
+                   object_fraction=np.zeros(m, np.float32), model="direct", samples=None, spp=None, max_depth=2,
+                   camera=None)
+    data = TargetData(tr, y.reshape(side, side, 3), np.ones((side, side), bool), y, np.ones(m, bool))
+    target = SimpleNamespace(noise_sigma=noise, name="t")
+    if broken:
+        spread_only = lambda ss, values, *_: (float(np.sqrt(2.0 / values) * ss), 0.0)  # noqa: E731
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(known, "misfit_allowance", spread_only)
+            on = known._solve_target(target, data, SolveParams(sky_profile="auto"), {})
+    else:
+        on = known._solve_target(target, data, SolveParams(sky_profile="auto"), {})
+    return truth, keep, on, known._solve_target(target, data, SolveParams(sky_profile="off"), {})
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_profile_within_the_maps_own_model_error_is_taken(seed):
+    """A wrong mesh (normals 1% off) at 0.5% noise: the solved map misfits by ~33 spreads beyond its noise, and the
+    profile model's own fit misfits by 4-5 spreads more than the map (measured 4.09 / 3.79): within the model error
+    the map's patches had to spend, so the profile is taken and solved, and its map is far closer to the truth
+    (tonemapped SSIM 0.58 -> 0.87, 0.52 -> 0.91). Broken: the allowance of one spread (session 31) keeps the
+    patches."""
+    truth, keep, on, off = _lobe_solves(0.005, seed, 0.01, 0.0)
+    rec = on.info["edges"]["sky_profile"]
+    rise = rec["ss_profile_fitted"] - rec["ss_map"]
+    assert rec["ss_spread"] < rise <= rec["ss_excess"] and rec["taken"] and "resolved" in rec
+    s_on, s_off = _tm_ssim_env(on.envmap, truth, keep), _tm_ssim_env(off.envmap, truth, keep)
+    assert s_on > s_off + 0.2, (s_off, s_on)
+    # the verdict's record of the black the edge solve left (the map sky_profile=off returns) before the profile
+    from objcam.solvers.plan.verdict import dark_sky_area
+
+    grid = EnvGrid(H)
+    lum = off.envmap.reshape(-1, 3)[keep].mean(axis=1)
+    black = dark_sky_area(lum, grid.solid_angles().reshape(-1)[keep], np.ones(keep.size, bool))
+    assert rec["dark_sky_area_solved"] == pytest.approx(black, abs=1e-6) and black > 0.05  # measured 0.12, 0.15
+    _, _, old, _ = _lobe_solves(0.005, seed, 0.01, 0.0, broken=True)
+    assert not old.info["edges"]["sky_profile"]["taken"]
+    assert _tm_ssim_env(old.envmap, truth, keep) < s_on - 0.2
+
+
+def test_a_sky_seen_in_azimuth_at_honest_noise_keeps_its_map():
+    """No model error, an azimuthal step of half the sky's level at 0.5% noise: the profile misfits by ~67 spreads,
+    ten times the map's own excess, and the map is kept (a rule that allowed any rise would flatten the step)."""
+    truth, keep, on, off = _lobe_solves(0.005, 0, 0.0, 1.0)
+    rec = on.info["edges"]["sky_profile"]
+    rise = rec["ss_profile_fitted"] - rec["ss_map"]
+    assert rise > 5 * rec["ss_allowed"] and not rec["taken"] and on.profile is None
+    np.testing.assert_array_equal(on.envmap, off.envmap)

@@ -113,6 +113,10 @@ def test_grade_rules():
     assert g == "red" and why[0].startswith("20% of the sky is black")
     g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9})  # solve.sky_profile: the azimuth is the prior's
     assert g == "yellow" and why == [why[0]] and why[0].startswith("90% of the sky shown as one value per")
+    # the black the edge solve left before the profile filled it (session 33: the rooms' 16-49% of black sky)
+    g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9, "dark_sky_area": 0.0, "dark_sky_area_solved": 0.49})
+    assert g == "red" and why[0].startswith("49% of the sky came out black (held at radiance 0) before its row")
+    assert grade({"sky_profile_area": 0.9, "dark_sky_area_solved": 0.05})[1][0].startswith("5% of the sky came out")
 
 
 def test_camera_looking_past_the_object_is_red(tmp_path, capsys):

@@ -35,7 +35,7 @@ from objcam.solvers.plan.params import SolveParams
 from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_noise, noise_ls, texel_group, weak_texels
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
-from objcam.solvers.skyprofile import profile_basis, sky_profile
+from objcam.solvers.skyprofile import misfit_allowance, profile_basis, sky_profile
 from objcam.solvers.sources import fit_residual
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
@@ -111,6 +111,7 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool texels given as
     their row's value or None)."""
     kkt, obj, iters, edge_info, rejected = solved
+    X0 = X  # the edge solve's map
     P = known_basis(tr, params, weak=weak)
     inside = np.ones(len(tr.texel_index), bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
     got = sky_profile(tr.A, fitted, d.y, X, grid, tr.texel_index, inside, tr.solid_angle)
@@ -123,8 +124,10 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             plain = params.model_copy(update={"outliers": "keep"})  # on the pixels the map fitted
             xp = solve_known_edges(tr, grid, fitted, d.y, ls, params.lr, plain, weak, sigma_abs, basis=basis)[0]
             ss_fit = fit_residual(tr.A, fitted, d.y[fitted], xp)[1]
-            keep = abs(ss_fit - rec["ss_map"]) <= rec["ss_spread"]
-            rec.update({"ss_profile_fitted": ss_fit, "taken": bool(keep),
+            allow, excess = misfit_allowance(rec["ss_map"], rec["fitted_values"], unknowns(tr.texel_index, P),
+                                             sigma_abs)
+            keep = -rec["ss_spread"] <= ss_fit - rec["ss_map"] <= allow
+            rec.update({"ss_profile_fitted": ss_fit, "ss_excess": excess, "ss_allowed": allow, "taken": bool(keep),
                         "fitted_rise_over_spread": float((ss_fit - rec["ss_map"]) / max(rec["ss_spread"], 1e-300))})
         if keep:
             X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, ls, params.lr, params,
@@ -136,6 +139,11 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
         profile = got.candidate if keep else None
     else:  # no sky texel, or a supersampled A: the row means where their test kept them
         X, profile = got.x, got.sky
+    if profile is not None:  # the black the edge solve left, which the profile fills: the verdict still sees it
+        from objcam.solvers.plan.verdict import dark_sky_area
+
+        up = tr.directions[:, 2] > 0
+        rec["dark_sky_area_solved"] = dark_sky_area(X0.mean(axis=1), tr.solid_angle.astype(np.float64), up & inside)
     edge_info["sky_profile"] = rec
     return X, kkt, obj, iters, edge_info, rejected, profile
 

@@ -101,10 +101,11 @@ class SolveParams(BaseModel):
         "auto", description="known albedo, prior=edges: 'auto': after the solve, when the sky outside the bright "
         "blobs (texels above 10 x the map's median, grown by one texel) set to its mean per lat-long row raises the "
         "fit's misfit by less than its own chi-squared spread (or, failing that, the profile model's own fit on the "
-        "same pixels is within that spread of the map's, above or below), the envmap is solved again on that model, "
+        "same pixels misfits by at most that spread, or by the map's own misfit beyond the noise where larger, more "
+        "than the map, and by at most the spread less), the envmap is solved again on that model, "
         "one unknown per row's sky texels (objcam.solvers.skyprofile: the edge prior draws azimuthal patches and dark "
         "rings into a dim sky that the photo barely sees beside a lamp or the sun); 'off': the map as solved. "
-        "Measured: bench/results.md, issues 22 and 28, sessions 29 and 31")
+        "Measured: bench/results.md, issues 22 and 28, sessions 29, 31 and 33")
     noise_fit: Literal["auto", "off"] = Field(
         "auto", description="known albedo, prior=edges, ls from the noise: 'auto': when the edge solve's residual is "
         "significantly below the stated (or estimated) noise (chi-squared per value under 1 - unknowns per channel / "

@@ -17,6 +17,8 @@ No ground truth is used: every measure comes from the photo, the model and the s
   radiance >= 0 bound (luminance at most ``VERDICT_DARK_LEVEL`` x the sky's 99th percentile). No real sky is black
   over an area; a black region is the clipped negative lobe of a fit to what the model cannot express, e.g. the
   sharp shadows of a light smaller than a texel, which box texels can only sharpen by a dark ring around it.
+  ``dark_sky_area_solved``: the same of the edge solve's map where solve.sky_profile then gave the sky as its row
+  means (which fill the black but not what the model missed there); the grade takes the larger.
 * ``below_horizon_energy``: the share of the map's energy (luminance x solid angle) the solve put below the
   horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
   texel's elevation and its column norm over the median column norm (how strongly the photo sees that direction).
@@ -275,6 +277,9 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         rec["uncertain_visible_area"] = float(omega[shown & up].sum() / sky)
     if sol.profile is not None and sol.profile.any():
         rec["sky_profile_area"] = float(omega[sol.profile & up].sum() / max(float(omega[up].sum()), 1e-300))
+        solved_dark = sol.info.get("edges", {}).get("sky_profile", {}).get("dark_sky_area_solved")
+        if solved_dark is not None:
+            rec["dark_sky_area_solved"] = float(solved_dark)
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
         rec["transport_margin"] = float(metrics["auto_margin"])
@@ -309,13 +314,14 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
         red.append(f"{uv:.0%} of the sky is not determined by the photo at the brightness it is shown")
     elif ua is not None and ua > VERDICT_UNCERTAIN_YELLOW:
         yellow.append(f"{ua:.0%} of the sky weakly determined (uncertainty above the value)")
-    dark = m.get("dark_sky_area", 0.0)
-    if dark > VERDICT_DARK_RED:
-        red.append(f"{dark:.0%} of the sky is black (held at radiance 0): the fit there answers what the model "
-                   "cannot express, e.g. the sharp shadows of a light smaller than a texel; see residual.exr")
-    elif dark > VERDICT_DARK_YELLOW:
-        yellow.append(f"{dark:.0%} of the sky is black (held at radiance 0): the model may miss a light smaller "
-                      "than a texel")
+    dark, filled = m.get("dark_sky_area", 0.0), m.get("dark_sky_area_solved", 0.0)
+    black = (f"{dark:.0%} of the sky is black (held at radiance 0)" if dark >= filled else
+             f"{filled:.0%} of the sky came out black (held at radiance 0) before its row means filled it")
+    if max(dark, filled) > VERDICT_DARK_RED:
+        red.append(f"{black}: the fit there answers what the model cannot express, e.g. the sharp shadows of a "
+                   "light smaller than a texel; see residual.exr")
+    elif max(dark, filled) > VERDICT_DARK_YELLOW:
+        yellow.append(f"{black}: the model may miss a light smaller than a texel")
     below, el = m.get("below_horizon_energy", 0.0), m.get("brightest_elevation_deg", 90.0)
     if el < 0:
         red.append(f"the brightest light is below the horizon ({el:.1f} deg), seen only past the support's edge")
