@@ -124,8 +124,7 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             plain = params.model_copy(update={"outliers": "keep"})  # on the pixels the map fitted
             xp = solve_known_edges(tr, grid, fitted, d.y, ls, params.lr, plain, weak, sigma_abs, basis=basis)[0]
             ss_fit = fit_residual(tr.A, fitted, d.y[fitted], xp)[1]
-            allow, excess = misfit_allowance(rec["ss_map"], rec["fitted_values"], unknowns(tr.texel_index, P),
-                                             sigma_abs)
+            allow, excess = misfit_allowance(rec["ss_map"], rec["fitted_values"], sigma_abs)
             keep = -rec["ss_spread"] <= ss_fit - rec["ss_map"] <= allow
             rec.update({"ss_profile_fitted": ss_fit, "ss_excess": excess, "ss_allowed": allow, "taken": bool(keep),
                         "fitted_rise_over_spread": float((ss_fit - rec["ss_map"]) / max(rec["ss_spread"], 1e-300))})
