@@ -252,7 +252,7 @@ def _lobe_solves(noise: float, seed: int, normal_error: float, sky_step: float, 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_profile_within_the_maps_own_model_error_is_taken(seed):
     """A wrong mesh (normals 1% off) at 0.5% noise: the solved map misfits by ~32 spreads beyond its noise, and the
-    profile model's own fit misfits by 4-5 spreads more than the map (measured 4.09 / 3.79): within the model error
+    profile model's own fit misfits by about 4 spreads more than the map (measured 4.09 / 3.79): within the error
     the map's patches had to spend, so the profile is taken and solved, and its map is far closer to the truth
     (tonemapped SSIM 0.58 -> 0.87, 0.52 -> 0.91). Broken: the allowance of one spread (session 31) keeps the
     patches."""

@@ -19,7 +19,7 @@ elevation. This step asks the data, after the solve, whether the detail is their
    the map's own misfit beyond the noise where that is larger) and below it by at most one spread. The row means
    of a map whose patches carried part of a lamp's shadows misfit by more than the model does; the model's best
    member is the fair test. Where the solved map itself misfits the photo beyond its noise (model error: a lamp
-   smaller than a texel, a light object's shading, chi-squared above its expectation), a profile that misfits by
+   smaller than a texel, a light object's shading; a residual the noise cannot account for), a profile that misfits by
    no more than that excess is not told from the map by the photo: the map's patches had the model error to
    spend, and the profile's extra misfit is within it. Below by more than a spread, the profile fits the photo
    better than the edge solve's map: the two maps are not the same light drawn two ways, and the solved map is
