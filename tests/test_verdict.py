@@ -86,6 +86,27 @@ def test_a_black_patch_in_the_sky_turns_red(toy):
     assert assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)["dark_sky_area"] == 0.0
 
 
+def test_a_profile_that_filled_black_sky_stays_red(toy):
+    """solve.sky_profile's record reaches the grade (session 33): the black the edge solve left before the row means
+    filled it (here 30% of the sky) is red although the map written has none, and a profile taken within the map's
+    own misfit (its fit rose by more than a spread) says so; without the record the same map is yellow."""
+    tr, truth, clean, photo = toy
+    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
+    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
+    profile = tr.directions[:, 2] > 0
+    test = {"ss_map": 1.0, "ss_spread": 0.01, "ss_profile_fitted": 1.2, "dark_sky_area_solved": 0.3}
+    sol = TargetSolution(truth, None, clean, {"edges": {"sky_profile": test}})
+    sol.profile = profile
+    v = assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)
+    assert v["dark_sky_area"] == 0.0 and v["dark_sky_area_solved"] == 0.3 and v["sky_profile_by_misfit"]
+    assert v["grade"] == "red" and v["reasons"][0].startswith("30% of the sky came out black")
+    assert any("within the misfit the model already leaves" in r for r in v["reasons"])
+    sol = TargetSolution(truth, None, clean, {"edges": {"sky_profile": {}}})
+    sol.profile = profile
+    v = assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)
+    assert v["grade"] == "yellow" and "dark_sky_area_solved" not in v and "sky_profile_by_misfit" not in v
+
+
 def test_dark_sky_area():
     lum = np.array([1.0, 2.0, 0.0, 1e-9, 3.0, 0.0])
     omega = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 5.0])
@@ -113,6 +134,9 @@ def test_grade_rules():
     assert g == "red" and why[0].startswith("20% of the sky is black")
     g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9})  # solve.sky_profile: the azimuth is the prior's
     assert g == "yellow" and why == [why[0]] and why[0].startswith("90% of the sky shown as one value per")
+    assert "within the misfit" not in why[0]
+    _, why = grade({"chi2": 1.0, "sky_profile_area": 0.9, "sky_profile_by_misfit": True})
+    assert why[0].endswith("from none within the misfit the model already leaves (solve.sky_profile)")
     # the black the edge solve left before the profile filled it (session 33: the rooms' 16-49% of black sky)
     g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9, "dark_sky_area": 0.0, "dark_sky_area_solved": 0.49})
     assert g == "red" and why[0].startswith("49% of the sky came out black (held at radiance 0) before its row")

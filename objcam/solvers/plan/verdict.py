@@ -29,6 +29,8 @@ No ground truth is used: every measure comes from the photo, the model and the s
 * ``sky_profile_area``: the share of the sky the map gives as one value per elevation row
   (objcam.solvers.skyprofile): its azimuthal detail is the prior's, not the photo's (yellow). Those texels'
   uncertainty is that of their row's value in the map's own model (:func:`row_mean_spread`).
+  ``sky_profile_by_misfit``: the profile was told from the map only within the map's own misfit beyond the noise
+  (its fit rose by more than a spread; the reason says so).
 
 Thresholds (objcam.solvers.plan.defaults, ``VERDICT_*``) and how they were chosen: bench/results.md, issue 22.
 
@@ -277,9 +279,11 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         rec["uncertain_visible_area"] = float(omega[shown & up].sum() / sky)
     if sol.profile is not None and sol.profile.any():
         rec["sky_profile_area"] = float(omega[sol.profile & up].sum() / max(float(omega[up].sum()), 1e-300))
-        solved_dark = sol.info.get("edges", {}).get("sky_profile", {}).get("dark_sky_area_solved")
-        if solved_dark is not None:
-            rec["dark_sky_area_solved"] = float(solved_dark)
+        test = sol.info.get("edges", {}).get("sky_profile", {})
+        if test.get("dark_sky_area_solved") is not None:
+            rec["dark_sky_area_solved"] = float(test["dark_sky_area_solved"])
+        if "ss_profile_fitted" in test:  # taken within the map's own misfit beyond the noise, not within a spread
+            rec["sky_profile_by_misfit"] = bool(test["ss_profile_fitted"] - test["ss_map"] > test["ss_spread"])
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
         rec["transport_margin"] = float(metrics["auto_margin"])
@@ -337,8 +341,9 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     if m.get("pixels_excluded", 0.0) > VERDICT_EXCLUDED_YELLOW:
         yellow.append(f"{m['pixels_excluded']:.0%} of the pixels unusable (saturated, invalid or hot)")
     if m.get("sky_profile_area", 0.0) > 0:
+        within = " within the misfit the model already leaves" if m.get("sky_profile_by_misfit") else ""
         yellow.append(f"{m['sky_profile_area']:.0%} of the sky shown as one value per elevation row: the photo did "
-                      "not tell its azimuthal detail from none (solve.sky_profile)")
+                      f"not tell its azimuthal detail from none{within} (solve.sky_profile)")
     mg = m.get("transport_margin")
     if mg is not None and mg > VERDICT_MARGIN_YELLOW:
         yellow.append(f"interreflections left out by a close margin ({mg:.2f} of the threshold)")
