@@ -214,7 +214,7 @@ def _lobe_solves(noise: float, seed: int, normal_error: float, sky_step: float, 
     from objcam.solvers.plan import known
     from objcam.solvers.plan.params import SolveParams
     from objcam.solvers.plan.targets import TargetData
-    from objcam.transport.storage import Transport
+    from tests.toy_scenes import toy_transport
 
     grid = EnvGrid(H)
     keep = np.arange(grid.n_texels // 2)
@@ -231,13 +231,8 @@ def _lobe_solves(noise: float, seed: int, normal_error: float, sky_step: float, 
     truth[3, 9] += 300.0
     clean = A_true @ truth.reshape(-1, 3)[keep]
     y = clean + noise * np.median(clean) * rng.normal(size=clean.shape)
-    m = y.shape[0]
-    tr = Transport(A=A[None].astype(np.float32), pixel_index=np.arange(m), image_shape=(side, side), downsample=1,
-                   texel_index=keep, env_height=H, directions=d, solid_angle=om, albedo=np.ones((m, 3), np.float32),
-                   unknown_albedo=np.zeros(m, bool), coverage=np.ones(m, np.float32),
-                   object_fraction=np.zeros(m, np.float32), model="direct", samples=None, spp=None, max_depth=2,
-                   camera=None)
-    data = TargetData(tr, y.reshape(side, side, 3), np.ones((side, side), bool), y, np.ones(m, bool))
+    tr = toy_transport(A, grid, keep, side)
+    data = TargetData(tr, y.reshape(side, side, 3), np.ones((side, side), bool), y, np.ones(y.shape[0], bool))
     target = SimpleNamespace(noise_sigma=noise, name="t")
     if broken:
         spread_only = lambda ss, values, *_: (float(np.sqrt(2.0 / values) * ss), 0.0)  # noqa: E731

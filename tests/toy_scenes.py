@@ -31,20 +31,25 @@ def sphere_shadow_transport(grid: EnvGrid, m_side: int, spheres=SPHERES) -> tupl
     return keep, A
 
 
-def sphere_shadow_toy(grid: EnvGrid, side: int):
-    """An objcam.transport.Transport of :func:`sphere_shadow_transport` (direct light, grey albedo 1, every pixel
-    kept, side x side pooled pixels) and its kept texels (N,)."""
+def toy_transport(A: np.ndarray, grid: EnvGrid, keep: np.ndarray, side: int):
+    """An objcam.transport.Transport of a grey A (M, N) on the texels ``keep`` (N,) of ``grid``: direct light,
+    albedo 1, every one of the side x side (= M) pooled pixels kept."""
     from objcam.transport.storage import Transport
 
-    keep, A = sphere_shadow_transport(grid, side)
     m = A.shape[0]
-    tr = Transport(A=A[None].astype(np.float32), pixel_index=np.arange(m), image_shape=(side, side), downsample=1,
-                   texel_index=keep, env_height=grid.height, directions=grid.directions().reshape(-1, 3)[keep],
-                   solid_angle=grid.solid_angles().ravel()[keep], albedo=np.ones((m, 3), np.float32),
-                   unknown_albedo=np.zeros(m, bool), coverage=np.ones(m, np.float32),
-                   object_fraction=np.zeros(m, np.float32), model="direct", samples=None, spp=None, max_depth=2,
-                   camera=None)
-    return tr, keep
+    return Transport(A=A[None].astype(np.float32), pixel_index=np.arange(m), image_shape=(side, side), downsample=1,
+                     texel_index=keep, env_height=grid.height, directions=grid.directions().reshape(-1, 3)[keep],
+                     solid_angle=grid.solid_angles().ravel()[keep], albedo=np.ones((m, 3), np.float32),
+                     unknown_albedo=np.zeros(m, bool), coverage=np.ones(m, np.float32),
+                     object_fraction=np.zeros(m, np.float32), model="direct", samples=None, spp=None, max_depth=2,
+                     camera=None)
+
+
+def sphere_shadow_toy(grid: EnvGrid, side: int):
+    """A :func:`toy_transport` of :func:`sphere_shadow_transport` (side x side ground points) and its kept texels
+    (N,)."""
+    keep, A = sphere_shadow_transport(grid, side)
+    return toy_transport(A, grid, keep, side), keep
 
 
 def sky_with_sun(grid: EnvGrid, keep: np.ndarray, sun: float) -> np.ndarray:

@@ -32,8 +32,17 @@ from objcam.solvers.nnls import PCG_MIN_UNKNOWNS
 from objcam.solvers.outliers import brightness_weights, outlier_rows
 from objcam.solvers.plan.defaults import EDGE_EPS_KNOWN, OUTLIER_AFTER_STEPS, OUTLIER_CLEAN_SPREAD, OUTLIER_MAX_SHARE
 from objcam.solvers.plan.params import SolveParams
-from objcam.solvers.plan.rules import basis_info, discrepancy_sigma, fitted_noise, noise_ls, texel_group, weak_texels
+from objcam.solvers.plan.rules import (
+    basis_info,
+    discrepancy_sigma,
+    fitted_noise,
+    noise_ls,
+    noise_scale,
+    texel_group,
+    weak_texels,
+)
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
+from objcam.solvers.plan.verdict import chi2_per_value, dark_sky_area
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.solvers.skyprofile import misfit_allowance, profile_basis, sky_profile
 from objcam.solvers.sources import fit_residual
@@ -139,8 +148,6 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     else:  # no sky texel, or a supersampled A: the row means where their test kept them
         X, profile = got.x, got.sky
     if profile is not None:  # the black the edge solve left, which the profile fills: the verdict still sees it
-        from objcam.solvers.plan.verdict import dark_sky_area
-
         up = tr.directions[:, 2] > 0
         rec["dark_sky_area_solved"] = dark_sky_area(X0.mean(axis=1), tr.solid_angle.astype(np.float64), up & inside)
     edge_info["sky_profile"] = rec
@@ -154,9 +161,6 @@ def fit_noise(target, d: TargetData, fitted: np.ndarray, X: np.ndarray, params: 
     (objcam.solvers.plan.rules.noise_scale: factor < 1 when the residual is significantly below that noise;
     noise_sigma: the per-photo-pixel relative noise the residual supports); None when off, when ls is not set
     from the noise (given, or an auto_reg rule) or when the noise is unknown."""
-    from objcam.solvers.plan.rules import noise_scale
-    from objcam.solvers.plan.verdict import chi2_per_value
-
     tr = d.transport
     sigma_rel, _ = fitted_noise(target, d.pooled, d.pooled_ok, tr.downsample)
     from_noise = params.ls is None and params.auto_reg == "off"
