@@ -554,7 +554,7 @@ def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
     grams = [sum((r[:, c, None] * cam["A"]).T @ (r[:, c, None] * cam["A"]) for cam, r in zip(cams, rhos))
              for c in range(3)]
     D = solvers.difference_operator(grid, texel_index)
-    ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, 1e-3, params.lr)
+    ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, 1e-3, params.ridge)
     P = texel_basis(grid, texel_index, 1.0)
     for l in range(L):
         rhs = [sum((r[:, c, None] * cam["A"]).T @ cam["Y"][:, l, c:c + 1] for cam, r in zip(cams, rhos))

@@ -20,8 +20,9 @@ from objcam.pipeline.stage import StageInputs, StageOutputs
 NAME = "transport"
 DEPS = ("scene",)
 VERSION = "2"
-# the code whose changes invalidate cached transport artifacts
-CODE_DEPS = ("objcam.transport", "objcam.render", "objcam.scene", "objcam.envmap", "objcam.camera")
+# the code whose changes invalidate cached transport artifacts (the solvers too: texel_kernel=auto picks each
+# target's A by the default solve's fit, objcam.transport.kernel)
+CODE_DEPS = ("objcam.transport", "objcam.render", "objcam.scene", "objcam.envmap", "objcam.camera", "objcam.solvers")
 
 
 class Params(BaseModel):

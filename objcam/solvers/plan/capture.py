@@ -68,7 +68,7 @@ def with_verdicts(scene, data: dict[str, TargetData], params: SolveParams,
     for name, sol in sols.items():
         t0 = time.perf_counter()
         with single_blas_thread():
-            v = assess(scene.target(name), data[name], sol, params.lr)
+            v = assess(scene.target(name), data[name], sol, params.ridge)
         v["seconds"] = round(time.perf_counter() - t0, 4)
         sol.info["verdict"] = v
     return sols
@@ -78,7 +78,7 @@ def solve_adam(scene, data: dict[str, TargetData], params: SolveParams) -> dict[
     """method=adam: every target through objcam.solvers.adam (per camera group with unknown albedo)."""
     settings = AdamSettings(lr=params.adam_lr, seconds=params.adam_seconds, max_iter=params.adam_max_iter,
                             spp=params.adam_spp, ls=params.ls if params.ls is not None else KNOWN_LS_REL,
-                            lr_ridge=params.lr, lp=0.0 if params.lp is None else params.lp,
+                            lr_ridge=params.ridge, lp=0.0 if params.lp is None else params.lp,
                             converge_tol=params.adam_converge_tol, patience=params.adam_patience,
                             stop_on_plateau=params.adam_stop_on_plateau)
     out: dict[str, TargetSolution] = {}

@@ -148,7 +148,7 @@ def final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel
         rhs += solvers.rhs(c["A"], W, fast=True).reshape(n, L, 3)
         yy += np.einsum("mlc,mlc->lc", c["Y"], c["Y"])
     with single_blas_thread():
-        ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, ls, params.lr)
+        ls_abs, lr_abs = solvers.absolute_weights(sum(grams) / 3, ls, params.ridge)
         eps = params.edge_eps if params.edge_eps is not None else EDGE_EPS_KNOWN
         P = texel_basis(grid, texel_index, texel_group(params, known=True))
         weak = final_weak(cams, grams, grid, texel_index, params)

@@ -4,7 +4,7 @@
 
 solved in the Gram form on the merged envmap basis (objcam.solvers.basis). The steps, per target:
 
-1. :func:`choose_ls`: the smoothness weight (given, from the target's noise, or by an auto_reg rule);
+1. :func:`choose_ls`: the smoothness and ridge weights (given, from the target's noise, or by an auto_reg rule);
 2. the solve: :func:`solve_known_edges` for the default edge-preserving prior (objcam.solvers.edges; with a grey
    A the luminance from the solve at ls and the chroma from a second one at ``chroma_ls_factor`` x ls,
    objcam.solvers.chroma, on a second thread; a supersampled A on the adaptive basis of objcam.solvers.refine), or
@@ -36,6 +36,7 @@ from objcam.solvers.plan.rules import (
     basis_info,
     discrepancy_sigma,
     fitted_noise,
+    noise_lr,
     noise_ls,
     noise_scale,
     texel_group,
@@ -64,20 +65,20 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
     edge_info = None
     with single_blas_thread():
         weak = known_weak(tr, params)
-        ls, ls_source, auto_info = choose_ls(target, d, grid, params, linear=edges)
+        ls, lr, ls_source, auto_info = choose_ls(target, d, grid, params, linear=edges)
         rejected = profile = None
         if edges:
             sigma_abs = noise_per_value(target, d) if params.outliers != "keep" else None
-            X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
+            X, kkt, obj, iters, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, lr, params,
                                                                         weak, sigma_abs)
             fitted = use if rejected is None else use & ~rejected
             noise_fit = fit_noise(target, d, fitted, X, params, weak)
             if noise_fit is not None and noise_fit["factor"] < 1.0:  # the photo is less noisy than stated
                 quieter = _with_noise(target, noise_fit["noise_sigma"])
-                ls, ls_source, auto_info = choose_ls(quieter, d, grid, params, linear=edges)
+                ls, lr, ls_source, auto_info = choose_ls(quieter, d, grid, params, linear=edges)
                 ls_source += f" (fitted: {noise_fit['factor']:.3g} x the stated noise)"
                 sigma_abs = noise_per_value(quieter, d) if params.outliers != "keep" else None
-                X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, params.lr, params,
+                X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, use, y, ls, lr, params,
                                                                            weak, sigma_abs)
                 iters += more
                 fitted = use if rejected is None else use & ~rejected
@@ -85,17 +86,17 @@ def _solve_target(target, d: TargetData, params: SolveParams, gram_cache: dict) 
                 X, edge_info["sources"] = known_sources(tr, grid, fitted, y, X)
             if params.sky_profile != "off":  # issues 22, 28: azimuthal detail the data cannot tell from none
                 X, kkt, obj, iters, edge_info, rejected, profile = with_sky_profile(
-                    tr, grid, d, fitted, X, (kkt, obj, iters, edge_info, rejected), ls, params, weak, sigma_abs)
+                    tr, grid, d, fitted, X, (kkt, obj, iters, edge_info, rejected), (ls, lr), params, weak, sigma_abs)
             if noise_fit is not None:
                 edge_info["noise_fit"] = noise_fit
         else:
-            X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, params.lr, params, gram_cache, weak)
+            X, kkt, obj, iters = solve_known_quadratic(tr, grid, use, y, ls, lr, params, gram_cache, weak)
     solve_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
     # CPU beside wall: on a shared machine the wall time says more about the load than about the solve
     info = {"channels_in_A": int(tr.A.shape[0]), "solve_seconds": round(solve_s, 4),
             "solve_cpu_seconds": round(cpu_s, 4),
             "iterations": int(iters), "kkt_residual_max": float(kkt.max()), "objective": obj.tolist(),
-            "ls_relative": ls, "ls_source": ls_source}
+            "ls_relative": ls, "lr_relative": lr, "ls_source": ls_source}
     sol = known_solution(tr, grid, d if rejected is None else d._replace(use=use & ~rejected), X, params, info,
                          edge_info, auto_info, weak)
     sol.rejected, sol.profile = rejected, profile
@@ -112,11 +113,13 @@ def known_sources(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, X: np.ndarr
 
 
 def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np.ndarray, solved: tuple,
-                     ls: float, params: SolveParams, weak: np.ndarray | None, sigma_abs: float | None) -> tuple:
+                     weights: tuple[float, float], params: SolveParams, weak: np.ndarray | None,
+                     sigma_abs: float | None) -> tuple:
     """params.sky_profile=auto (objcam.solvers.skyprofile) after the edge solve ``solved`` = (KKT, objective,
-    iterations, edge record, rejected rows) of X (N, 3), on the pixels ``fitted`` it fitted: where the row means'
-    test fails, the profile model's own fit tested (step 3b); where a test keeps the profile, the envmap solved
-    again on the profile model (step 4; a supersampled A keeps the row means and has no step 3b). Returns
+    iterations, edge record, rejected rows) of X (N, 3) at ``weights`` = (ls, lr), on the pixels ``fitted`` it
+    fitted: where the row means' test fails, the profile model's own fit tested (step 3b); where a test keeps the
+    profile, the envmap solved again on the profile model (step 4; a supersampled A keeps the row means and has no
+    step 3b). Returns
     (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool texels given as
     their row's value or None)."""
     kkt, obj, iters, edge_info, rejected = solved
@@ -131,14 +134,14 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
         keep = got.sky is not None
         if not keep:  # the test on the profile model's own fit, not on the solved map's row means
             plain = params.model_copy(update={"outliers": "keep"})  # on the pixels the map fitted
-            xp = solve_known_edges(tr, grid, fitted, d.y, ls, params.lr, plain, weak, sigma_abs, basis=basis)[0]
+            xp = solve_known_edges(tr, grid, fitted, d.y, *weights, plain, weak, sigma_abs, basis=basis)[0]
             ss_fit = fit_residual(tr.A, fitted, d.y[fitted], xp)[1]
             allow, excess = misfit_allowance(rec["ss_map"], rec["fitted_values"], sigma_abs)
             keep = -rec["ss_spread"] <= ss_fit - rec["ss_map"] <= allow
             rec.update({"ss_profile_fitted": ss_fit, "ss_excess": excess, "ss_allowed": allow, "taken": bool(keep),
                         "fitted_rise_over_spread": float((ss_fit - rec["ss_map"]) / max(rec["ss_spread"], 1e-300))})
         if keep:
-            X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, ls, params.lr, params,
+            X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, *weights, params,
                                                                        weak, sigma_abs, basis=basis)
             iters += more
             if "sources" in first:
@@ -201,25 +204,29 @@ def known_weak(tr, params: SolveParams) -> np.ndarray | None:
 
 
 def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear: bool):
-    """The relative smoothness weight: params.ls, else from the target's noise (:func:`noise_ls`; ``linear``: the
-    edge prior's rule), replaced by the auto_reg rule's choice unless it is off. Returns (ls, its source, the
-    auto_reg record or None). Call with one BLAS thread."""
+    """The relative smoothness and ridge weights: params.ls, else from the target's noise (:func:`noise_ls`;
+    ``linear``: the edge prior's rule), replaced by the auto_reg rule's choice unless it is off; params.lr, else
+    for the edge prior with ls from the noise :func:`noise_lr` (the ridge follows the noise), else the fixed
+    default. Returns (ls, lr, the source of ls, the auto_reg record or None). Call with one BLAS thread."""
     tr, use, y = d.transport, d.use, d.y
     C = tr.A.shape[0]
     rule = params.auto_reg if params.auto_reg != "off" else None
     auto_info = None
     ls, ls_source = params.ls, "param"
+    lr = params.ridge
     if ls is None:
         ls, ls_source = noise_ls(target, d.pooled, d.pooled_ok, params, tr.downsample, linear=linear,
                                  supersample=tr.env_height // tr.output_height, height=tr.output_height)
+        if linear and params.lr is None and rule is None:
+            lr = noise_lr(target, d.pooled, d.pooled_ok, tr.downsample)
     if rule is not None:
         # one weight for the target's channels: the criterion on the grey (channel-mean) transport
         Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)
         ls, _, inf = solvers.choose_weights(Ag, y[use], grid, tr.texel_index, rule=rule,
-                                            sigma=discrepancy_sigma(target, y[use], rule), lr=params.lr)
+                                            sigma=discrepancy_sigma(target, y[use], rule), lr=lr)
         auto_info = {"rule": rule, "ls_relative": ls, "notes": inf["notes"], "seconds": round(inf["seconds"], 3)}
         ls_source = f"auto_reg {rule}"
-    return ls, ls_source, auto_info
+    return ls, lr, ls_source, auto_info
 
 
 def solve_known_quadratic(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
@@ -302,7 +309,7 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
         "solve_cpu_seconds": solve["solve_cpu_seconds"], "iterations": solve["iterations"],
         "kkt_residual_max": solve["kkt_residual_max"],
         "objective": solve["objective"], "relative_image_residual": rel_res, "ls_relative": solve["ls_relative"],
-        "lr_relative": params.lr, "ls_source": solve["ls_source"],
+        "lr_relative": solve["lr_relative"], "ls_source": solve["ls_source"],
         "prior": params.prior if params.method == "exact" else "smooth",
     }
     if edge_info is not None:

@@ -24,6 +24,7 @@ from objcam.solvers.plan.defaults import (
     JOINT_TOL,
     JOINT_TOL_FINAL,
     LP_ONE_ILLUMINATION,
+    LR_SIGMA_REF,
     LS_NOISE_FACTOR,
     OUTLIER_K,
     REFINE_FRACTION,
@@ -75,7 +76,10 @@ class SolveParams(BaseModel):
         "group, written back on the lat-long grid); 0: one unknown per texel, the method's parameterisation. "
         f"None: {TEXEL_GROUP_KNOWN:g} for a known albedo, {TEXEL_GROUP_JOINT:.3g} for the joint solve "
         "(bench/results.md). method=adam always optimises the texels")
-    lr: float = Field(DEFAULT_LR_REL, ge=0, description="L2 (ridge) weight, relative like ls")
+    lr: float | None = Field(
+        None, ge=0, description="L2 (ridge) weight, relative like ls. None: for the known-albedo edge prior with ls "
+        f"from the noise, {DEFAULT_LR_REL:g} x min(1, sigma / {LR_SIGMA_REF:g}) (the ridge follows the noise as ls "
+        f"does); elsewhere {DEFAULT_LR_REL:g}")
     weak_texels: Literal["keep", "exclude", "tie"] = Field(
         "exclude", description="known albedo, and the unknown albedo's final step (final_envmap=known, on its own "
         "A = diag(rho) A'): texels the photo barely sees (column norm under weak_fraction x the "
@@ -192,3 +196,9 @@ class SolveParams(BaseModel):
     adam_stop_on_plateau: bool = Field(True, description="method=adam: stop where the plateau rule fires "
                                        "('converged'); false records that time (plateau_seconds) and goes on at "
                                        "the smallest rate until adam_seconds (the benchmark's long run)")
+
+    @property
+    def ridge(self) -> float:
+        """The relative ridge weight where no noise rule applies (the quadratic prior, the joint solve, the
+        verdict's uncertainty): ``lr``, else the fixed default."""
+        return DEFAULT_LR_REL if self.lr is None else self.lr

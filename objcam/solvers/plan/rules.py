@@ -17,6 +17,7 @@ from objcam.solvers.plan.defaults import (
     EDGE_LS_PER_SIGMA,
     EDGE_LS_PER_SIGMA_SUPERSAMPLED,
     KNOWN_LS_REL,
+    LR_SIGMA_REF,
     LS_HEIGHT,
     LS_NOISE_FACTOR,
     LS_RANGE,
@@ -54,6 +55,17 @@ def noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolvePar
     if height == LS_HEIGHT:
         return ls, source
     return ls * height_factor(height), f"{source}, x {height_factor(height):g} for {height} rows"
+
+
+def noise_lr(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int = 1) -> float:
+    """The known-albedo edge prior's relative ridge weight from the noise of one fitted pixel (as :func:`noise_ls`):
+    DEFAULT_LR_REL x min(1, sigma / LR_SIGMA_REF), so that the ridge keeps its ratio to ls = 1.5 sigma on quieter
+    photos instead of outweighing the data (objcam.solvers.plan.defaults.LR_SIGMA_REF); DEFAULT_LR_REL when the
+    noise is unknown."""
+    from objcam.solvers.regularization import DEFAULT_LR_REL
+
+    sigma, _ = fitted_noise(target, pooled, pooled_ok, f)
+    return DEFAULT_LR_REL * min(1.0, sigma / LR_SIGMA_REF) if sigma else DEFAULT_LR_REL
 
 
 def height_factor(height: int) -> float:

@@ -169,7 +169,7 @@ def joint_setup(scene, data: dict[str, TargetData], params: SolveParams, cams: l
         method=params.method, prior=params.prior if params.method == "exact" else "smooth",
         edge_eps=params.edge_eps if params.edge_eps is not None else EDGE_EPS_JOINT,
         edge_steps=min(params.edge_steps, JOINT_EDGE_STEPS),
-        ls=None if params.auto_reg != "off" else ls_fixed * conv, lr=params.lr * conv,
+        ls=None if params.auto_reg != "off" else ls_fixed * conv, lr=params.ridge * conv,
         lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
         rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=tol, max_iter=params.max_iter,
         alpha=params.alpha, texel_group=texel_group(params, known=False), pinned_scale=params.pinned_scale)
