@@ -31,13 +31,17 @@ from bench.sections import write_section
 
 CORE_TITLE = "Core: transport and solve (issue 2)"
 HDRIS = ("forest", "courtyard", "city", "sunrise")
+# the direct-light models with box texels (texel_kernel 1): the model's own cost and error; `auto` (the default)
+# also chooses each target's texel kernel by the fit (objcam.transport.kernel), in its A time
+BOX = {"texel_kernel": 1.0}
 SETTINGS_FULL = [
-    ("direct K=1", {"model": "direct", "samples": 1, "subpixel_samples": 8}),
-    ("direct K=4", {"model": "direct", "samples": 4, "subpixel_samples": 32}),
+    ("direct K=1", {"model": "direct", "samples": 1, "subpixel_samples": 8, **BOX}),
+    ("direct K=4", {"model": "direct", "samples": 4, "subpixel_samples": 32, **BOX}),
     # the speed setting: the object's pixels at 64 sub-pixel samples instead of 256 (the default, which buys the
     # solves' SSIM through the bunny's silhouette and its light from the support; bench notes)
-    ("direct K=4, fast", {"model": "direct", "samples": 4, "subpixel_samples": 32, "object_subpixel_samples": 64}),
-    ("direct K=16", {"model": "direct", "samples": 16, "subpixel_samples": 64}),
+    ("direct K=4, fast", {"model": "direct", "samples": 4, "subpixel_samples": 32, "object_subpixel_samples": 64,
+                          **BOX}),
+    ("direct K=16", {"model": "direct", "samples": 16, "subpixel_samples": 64, **BOX}),
     ("auto", {"model": "auto"}),
     # the quality setting: A on the 64 x 128 grid, the envmap written at 32 x 64 (objcam.solvers.refine)
     ("auto, supersample 2", {"model": "auto", "supersample": 2}),
@@ -156,6 +160,19 @@ def reference_columns(capture: Path, work: Path, n_cols: int, spp: int, seed: in
     return out
 
 
+def box_transport(folder: Path, first: str):
+    """(Transport, group name) whose columns the table's error measures: the box-texel A of camera 0 (``cam0``),
+    the one transport.texel_kernel=auto's candidates derive from, when a target kept it; else ``first``'s A. A
+    target's own A may carry narrow or point-source columns at its bright blobs (objcam.transport.kernel): by
+    design not the box-texel direct light the reference renders."""
+    from objcam.transport import load_transport
+    from objcam.transport.storage import load_group, read_index
+
+    if (folder / "cam0").is_dir():
+        return load_group(folder / "cam0"), "cam0"
+    return load_transport(folder, first), read_index(folder)["targets"][first]
+
+
 def column_error(tr, ref: dict) -> float:
     """Relative column L2 of A against the reference, with the reference's own Monte-Carlo noise removed:
     E||a - r||^2 = ||a - r_true||^2 + sigma^2, and sigma^2 = E||r_a - r_b||^2 / 2 from the two renders."""
@@ -230,13 +247,13 @@ def main(argv=None) -> int:
         if ref is None:
             log(f"  reference columns: {args.ref_columns} texels x 2 renders at {ref_spp} spp (max_depth 2)")
             ref = reference_columns(capture, work, args.ref_columns, ref_spp)
-        from objcam.transport import load_transport
-
-        tr = load_transport(work / "transport", hdris[0])
+        tr, group = box_transport(work / "transport", hdris[0])
         trec = json.loads((work / "transport" / "stage.json").read_text())
+        kernels = trec["metrics"].get("texel_kernel_auto", {}).get("targets", {})
         a_rows.append({"setting": label, "seconds": trec["wall_seconds"], "load": trec.get("load_average"),
                        "cached": stage_time(work, "transport", t_setting)["cached"],
-                       "column_error": column_error(tr, ref),
+                       "column_error": column_error(tr, ref), "error_group": group,
+                       "kernels": {h: k["kernel"] for h, k in kernels.items()},
                        "pixels": int(tr.A.shape[1]), "texels": int(tr.A.shape[2]),
                        "summary": trec["summary"]})
         log(f"  {label}: A in {trec['wall_seconds']:.1f} s, column error {a_rows[-1]['column_error']:.4f}")
@@ -315,14 +332,23 @@ def render_markdown(a_rows, rows, hdris, target_spp, ref, args) -> str:
              f"Error: relative column L2 against Mitsuba's path tracer restricted to direct light (max_depth 2), "
              f"{len(ref['texels'])} sampled columns rendered twice at {int(ref['spp'])} spp, the reference's own "
              "noise subtracted. `auto` and `path` include indirect light (interreflections), so their distance from "
-             "this direct-light reference is mostly the indirect part itself, not an error. Times are wall-clock "
+             "this direct-light reference is mostly the indirect part itself, not an error. The direct rows use "
+             "box texels (`transport.texel_kernel=1`): the model's own cost. `auto` is the default, "
+             "`texel_kernel=auto` included: each target may keep an A with narrow or point-source columns at its "
+             "bright blobs (by design not the reference's box-texel light, so the error is the box-texel A's, "
+             "`cam0`, every candidate's base), and its A time includes that choice (the default solve per target "
+             "on each candidate, and a narrow-kernel A where a box solve left black sky). Times are wall-clock "
              "on 2 cores; `load` is the machine's 1-minute load average when the stage started (above 1, other "
              "work shared the cores).", "",
-             "| setting | A time (s) | load | column error | pixels x texels |", "|---|---:|---:|---:|---|"]
+             "| setting | A time (s) | load | column error | pixels x texels | A kept per HDRI |",
+             "|---|---:|---:|---:|---|---|"]
     for r in a_rows:
         load = "" if r.get("load") is None else f"{r['load']:.1f}"
-        lines.append(f"| {r['setting']} | {seconds_cell(r['seconds'], r.get('cached', False))} | {load} | "
-                     f"{100 * r['column_error']:.2f}% | {r['pixels']:,} x {r['texels']:,} |")
+        kept = ", ".join(f"{h} {k}" for h, k in r.get("kernels", {}).items())
+        group = r.get("error_group", "cam0")
+        err = f"{100 * r['column_error']:.2f}%" + ("" if group == "cam0" else f" ({group})")
+        lines.append(f"| {r['setting']} | {seconds_cell(r['seconds'], r.get('cached', False))} | {load} | {err} | "
+                     f"{r['pixels']:,} x {r['texels']:,} | {kept} |")
     lines += ["", "### Solve: time and envmap error per HDRI", "",
               "SSIM and RMSE of tonemapped maps (truth's 99th percentile, clip, gamma 1/2.2); relative RMSE = "
               "RMSE / mean(truth) over solved texels; angle between brightest-source directions.", "",

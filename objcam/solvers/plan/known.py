@@ -119,9 +119,8 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     iterations, edge record, rejected rows) of X (N, 3) at ``weights`` = (ls, lr), on the pixels ``fitted`` it
     fitted: where the row means' test fails, the profile model's own fit tested (step 3b); where a test keeps the
     profile, the envmap solved again on the profile model (step 4; a supersampled A keeps the row means and has no
-    step 3b). Returns
-    (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool texels given as
-    their row's value or None)."""
+    step 3b). Returns (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool
+    texels given as their row's value or None)."""
     kkt, obj, iters, edge_info, rejected = solved
     X0 = X  # the edge solve's map
     P = known_basis(tr, params, weak=weak)
