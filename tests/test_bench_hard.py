@@ -147,6 +147,22 @@ def test_the_blocks_targets_say_met_missed_and_not_measured():
     assert "1 of 6 targets refused: refused here (f)" in text
 
 
+def test_the_verdict_line_names_targets_where_ssim_cannot_tell_a_map_from_a_flat_one():
+    """A red grade on a target whose truth's constant map already scores SSIM >= 0.99 (a room's flat walls at the
+    tonemap's white) is counted, and named apart; a target whose flat map scores less is not set apart."""
+    from bench.hard.report import targets
+
+    def graded(target, ssim, grade, const):
+        r = _row(target, 0.02, ssim)
+        r.update(verdict={"grade": grade}, baselines={"constant": {"ssim": const}, "row_mean": {"ssim": 0.5}})
+        return r
+
+    rows = [graded("room", 1.0, "red", 0.998), graded("lamp", 0.9, "red", 0.95), graded("sky", 0.8, "green", 0.3)]
+    line = next(x for x in targets(rows) if "SSIM >= 0.7 graded red" in x)
+    assert line.startswith("- **missed**: no target with SSIM >= 0.7 graded red: 2 of 3 (room, lamp)"), line
+    assert line.endswith("the truth's constant map scores >= 0.99: room), so 1 of 2 otherwise"), line
+
+
 def _plane_irradiance_as_emitted(bitmap: np.ndarray, n_t: int = 2048, n_p: int = 1024) -> float:
     """Luminance irradiance on an up-facing plane, int L cos(theta) dw over the upper hemisphere, with L Mitsuba's
     envmap loaded as bench/hard/scene.py loads ``bitmap`` (midpoint rule)."""

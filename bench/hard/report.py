@@ -43,6 +43,16 @@ def _solved(rows, noise=None):
     return [r for r in rows if r["status"] == "ok" and (noise is None or r["noise"] == noise)]
 
 
+#: a target whose truth's constant map (its mean per channel) scores at least this SSIM: the tonemapped truth is
+#: flat at the tonemap's white over nearly all the sky (a room's uniform walls at its 99th percentile), so SSIM
+#: charges only a map darker than the truth and cannot tell a map from a flat one; reported beside the verdict line
+SSIM_BLIND = 0.99
+
+
+def _ssim_blind(r: dict) -> bool:
+    return (r.get("baselines") or {}).get("constant", {}).get("ssim", 0.0) >= SSIM_BLIND
+
+
 def _band_ok(r, lo, hi) -> bool:
     return all(b is not None and lo <= b <= hi for b in r["band_energy"])
 
@@ -92,8 +102,13 @@ def targets(rows: list[dict]) -> list[str]:
             line(low_red == len(low), f"the verdict: every target with SSIM < 0.4 graded red: {low_red} of "
                  f"{len(low)}" + (f" (not red: {', '.join(r['target'] for r in low if r['verdict']['grade'] != 'red')})"
                                   if low_red < len(low) else ""))
+            blind = {r["target"] for r in graded if _ssim_blind(r)}
             line(not high_red, f"no target with SSIM >= 0.7 graded red: {len(high_red)} of {len(high)}"
-                 + (f" ({', '.join(high_red)})" if high_red else ""))
+                 + (f" ({', '.join(high_red)})" if high_red else "")
+                 + (f"; of them {len(blind & set(high_red))} where SSIM cannot tell a map from a flat one (the truth's"
+                    f" constant map scores >= {SSIM_BLIND}: {', '.join(sorted(blind & set(high_red)))}), so "
+                    f"{len(set(high_red) - blind)} of {len({r['target'] for r in high} - blind)} otherwise"
+                    if blind & set(high_red) else ""))
     if unsolved:
         for kind in sorted({r["status"] for r in unsolved}):
             k = [r for r in unsolved if r["status"] == kind]
