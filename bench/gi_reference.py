@@ -134,17 +134,20 @@ def make_capture(root: Path, size: int, spp: int) -> Path:
 
 
 def build_a(cap: Path, work: Path, sets: list[str]) -> tuple[object, dict]:
-    """Run objcam's transport stage with ``sets``: (its Transport of target t0, provenance: seconds, whether the
-    stage came from the cache, its summary)."""
+    """Run objcam's transport stage with ``sets``: (its box-texel Transport, provenance: seconds, whether the
+    stage came from the cache, its summary, the group measured). The box-texel A (``cam0``, bench.run.box_transport)
+    rather than t0's own: with texel_kernel=auto a target may keep point-source or narrow columns at its bright
+    blobs, by design not the one-hot box texel the reference renders."""
+    from bench.run import box_transport
     from objcam.pipeline.engine import Pipeline, parse_overrides
-    from objcam.transport import load_transport
 
     pipe = Pipeline(cap, work, parse_overrides(sets), quiet=True)
     reports = pipe.run(until="transport")
     rep = {r.stage: r for r in reports}["transport"]
     rec = json.loads((work / "transport" / "stage.json").read_text())
-    return load_transport(work / "transport", "t0"), {"seconds": rec["wall_seconds"], "cached": rep.status == "cached",
-                                                      "summary": rec["summary"]}
+    tr, group = box_transport(work / "transport", "t0")
+    return tr, {"seconds": rec["wall_seconds"], "cached": rep.status == "cached", "summary": rec["summary"],
+                "group": group}
 
 
 def pooled(img: np.ndarray, f: int, pixel_index: np.ndarray) -> np.ndarray:
@@ -332,7 +335,8 @@ def markdown(res: dict, argv) -> str:
         met = "met" if r["column_error"] <= TARGET else "missed" if r["model"].startswith("auto") else ""
         when = f"{r['seconds']:.1f}" + (" (cached: an earlier run's)" if r["cached"] else "")
         e = r["energy_ratio"]
-        L.append(f"| {r['model']} | {100 * r['column_error']:.2f}% | {met} | {when} | "
+        group = "" if r.get("group", "cam0") == "cam0" else f" ({r['group']})"
+        L.append(f"| {r['model']} | {100 * r['column_error']:.2f}%{group} | {met} | {when} | "
                  f"{100 * float(np.median(r['per_column'])):.2f}% / {100 * max(r['per_column']):.2f}% | "
                  f"{float(np.median(e)):.3f} ({min(e):.3f}-{max(e):.3f}) | {r['summary'][:120]} |")
     return "\n".join(L)
