@@ -12,18 +12,26 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.metrics import relative_rmse
 from objcam.solvers.plan.defaults import LR_SIGMA_REF
-from objcam.solvers.plan.rules import noise_lr
+from objcam.solvers.plan.params import SolveParams
+from objcam.solvers.plan.rules import noise_lr, noise_ls, noise_weights
 from objcam.solvers.regularization import DEFAULT_LR_REL
 
 
 def test_noise_lr_rule():
-    ok = np.ones((4, 4), bool)
-    img = np.ones((4, 4, 3))
     for sigma, want in ((LR_SIGMA_REF, DEFAULT_LR_REL), (LR_SIGMA_REF / 4, DEFAULT_LR_REL / 4),
                         (0.001, DEFAULT_LR_REL * 0.001 / LR_SIGMA_REF), (5 * LR_SIGMA_REF, DEFAULT_LR_REL)):
-        assert noise_lr(SimpleNamespace(noise_sigma=sigma), img, ok) == pytest.approx(want)  # never above the default
-    # the stated noise is per photo pixel: over 2 x 2 pooling a fitted pixel has half of it
-    assert noise_lr(SimpleNamespace(noise_sigma=0.01), img, ok, f=2) == pytest.approx(DEFAULT_LR_REL * 0.25)
+        assert noise_lr(sigma) == pytest.approx(want)  # never above the default
+    assert noise_lr(None) == DEFAULT_LR_REL  # noise unknown
+
+
+def test_noise_weights_estimate_the_noise_once_for_both():
+    """ls as noise_ls gives it, lr from the same noise per fitted pixel: the stated noise is per photo pixel, so
+    over 2 x 2 pooling a fitted pixel has half of it."""
+    ok, img, p = np.ones((4, 4), bool), np.ones((4, 4, 3)), SolveParams()
+    target = SimpleNamespace(noise_sigma=0.01)
+    ls, lr, source = noise_weights(target, img, ok, p, f=2, linear=True)
+    assert (ls, source) == noise_ls(target, img, ok, p, f=2, linear=True)
+    assert lr == pytest.approx(DEFAULT_LR_REL * 0.25)
 
 
 def _solve(noise: float, **params):

@@ -86,7 +86,7 @@ def test_fit_gives_each_target_the_kernel_its_fit_prefers(tmp_path, monkeypatch)
     noise, objcam.solvers.plan.rules.noise_lr) compact and narrow tie for the lamp (1.332 / 1.333 before)."""
     from objcam.solvers.regularization import DEFAULT_LR_REL
 
-    monkeypatch.setattr("objcam.solvers.plan.known.noise_lr", lambda *a, **k: DEFAULT_LR_REL)
+    monkeypatch.setattr("objcam.solvers.plan.rules.noise_lr", lambda sigma: DEFAULT_LR_REL)
     folder = tmp_path / "scene"
     _write_artifact(folder, cams=2, noise=0.002)
     _run(folder, tmp_path / "box", model="direct", texel_kernel=1.0)

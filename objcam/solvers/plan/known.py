@@ -36,9 +36,8 @@ from objcam.solvers.plan.rules import (
     basis_info,
     discrepancy_sigma,
     fitted_noise,
-    noise_lr,
-    noise_ls,
     noise_scale,
+    noise_weights,
     texel_group,
     weak_texels,
 )
@@ -203,10 +202,10 @@ def known_weak(tr, params: SolveParams) -> np.ndarray | None:
 
 
 def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear: bool):
-    """The relative smoothness and ridge weights: params.ls, else from the target's noise (:func:`noise_ls`;
-    ``linear``: the edge prior's rule), replaced by the auto_reg rule's choice unless it is off; params.lr, else
-    for the edge prior with ls from the noise :func:`noise_lr` (the ridge follows the noise), else the fixed
-    default. Returns (ls, lr, the source of ls, the auto_reg record or None). Call with one BLAS thread."""
+    """The relative smoothness and ridge weights: params.ls, else from the target's noise
+    (objcam.solvers.plan.rules.noise_weights; ``linear``: the edge prior's rule), replaced by the auto_reg rule's
+    choice unless it is off; params.lr, else for the edge prior with ls from the noise the noise's ridge
+    (rules.noise_lr), else the fixed default. Returns (ls, lr, the source of ls, the auto_reg record or None). Call with one BLAS thread."""
     tr, use, y = d.transport, d.use, d.y
     C = tr.A.shape[0]
     rule = params.auto_reg if params.auto_reg != "off" else None
@@ -214,10 +213,11 @@ def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear:
     ls, ls_source = params.ls, "param"
     lr = params.ridge
     if ls is None:
-        ls, ls_source = noise_ls(target, d.pooled, d.pooled_ok, params, tr.downsample, linear=linear,
-                                 supersample=tr.env_height // tr.output_height, height=tr.output_height)
+        ls, noise_ridge, ls_source = noise_weights(target, d.pooled, d.pooled_ok, params, tr.downsample,
+                                                   linear=linear, supersample=tr.env_height // tr.output_height,
+                                                   height=tr.output_height)
         if linear and params.lr is None and rule is None:
-            lr = noise_lr(target, d.pooled, d.pooled_ok, tr.downsample)
+            lr = noise_ridge
     if rule is not None:
         # one weight for the target's channels: the criterion on the grey (channel-mean) transport
         Ag = tr.A[0][use] if C == 1 else tr.A[:, use].mean(axis=0)

@@ -51,20 +51,28 @@ def noise_ls(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolvePar
     (the known-albedo edge prior), within LS_RANGE (the noise sets how much the data can be trusted against the
     prior; measured on 128 x 128 targets, and transport's automatic pooling keeps larger photos at 8-32k fitted
     pixels); times :func:`height_factor` for an envmap of ``height`` rows (the output grid's)."""
-    ls, source = _noise_ls(target, pooled, pooled_ok, params, f, linear, supersample)
-    if height == LS_HEIGHT:
-        return ls, source
-    return ls * height_factor(height), f"{source}, x {height_factor(height):g} for {height} rows"
+    ls, _, source = noise_weights(target, pooled, pooled_ok, params, f, linear, supersample, height)
+    return ls, source
 
 
-def noise_lr(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int = 1) -> float:
-    """The known-albedo edge prior's relative ridge weight from the noise of one fitted pixel (as :func:`noise_ls`):
+def noise_weights(target, pooled: np.ndarray, pooled_ok: np.ndarray, params: SolveParams, f: int = 1,
+                  linear: bool = False, supersample: int = 1, height: int = LS_HEIGHT) -> tuple[float, float, str]:
+    """(ls, lr, the source of ls) from the noise of one fitted pixel, estimated once: ls as :func:`noise_ls`,
+    lr as :func:`noise_lr`."""
+    sigma, source = fitted_noise(target, pooled, pooled_ok, f)
+    ls, source = _noise_ls(sigma, source, params, linear, supersample)
+    if height != LS_HEIGHT:
+        ls, source = ls * height_factor(height), f"{source}, x {height_factor(height):g} for {height} rows"
+    return ls, noise_lr(sigma), source
+
+
+def noise_lr(sigma: float | None) -> float:
+    """The known-albedo edge prior's relative ridge weight for a relative noise ``sigma`` per fitted pixel:
     DEFAULT_LR_REL x min(1, sigma / LR_SIGMA_REF), so that the ridge keeps its ratio to ls = 1.5 sigma on quieter
     photos instead of outweighing the data (objcam.solvers.plan.defaults.LR_SIGMA_REF); DEFAULT_LR_REL when the
-    noise is unknown."""
+    noise is unknown (None or 0)."""
     from objcam.solvers.regularization import DEFAULT_LR_REL
 
-    sigma, _ = fitted_noise(target, pooled, pooled_ok, f)
     return DEFAULT_LR_REL * min(1.0, sigma / LR_SIGMA_REF) if sigma else DEFAULT_LR_REL
 
 
@@ -73,9 +81,8 @@ def height_factor(height: int) -> float:
     return (float(height) / LS_HEIGHT) ** 4
 
 
-def _noise_ls(target, pooled, pooled_ok, params: SolveParams, f: int, linear: bool,
+def _noise_ls(sigma: float | None, source: str, params: SolveParams, linear: bool,
               supersample: int) -> tuple[float, str]:
-    sigma, source = fitted_noise(target, pooled, pooled_ok, f)
     source = {"estimated": "estimated noise"}.get(source, source)
     if not sigma:
         return KNOWN_LS_REL, "default (noise unknown)"
