@@ -23,7 +23,7 @@ from objcam.solvers.joint.blocks import DEFAULT_RHO_MIN
 from objcam.solvers.joint.scale_step import known_pixel_scale
 from objcam.solvers.plan.defaults import ALBEDO_TV_FACTOR, ALBEDO_TV_TOP, EDGE_EPS_KNOWN, FINAL_EARLY_STEPS
 from objcam.solvers.plan.params import SolveParams
-from objcam.solvers.plan.rules import fitted_noise, noise_ls, relative_column_norms, texel_group
+from objcam.solvers.plan.rules import fitted_noise, noise_weights, relative_column_norms, texel_group
 from objcam.threads import parallel_map, single_blas_thread
 
 
@@ -40,9 +40,11 @@ def final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: n
     elif params.ls is not None:
         ls, source = params.ls, "param"
     else:  # the known-albedo rule, the median over the problem's targets
-        got = [noise_ls(scene.target(t), data[t].pooled, data[t].pooled_ok, params, c["tr"].downsample, linear=True)
-               for c in cams for t in c["targets"]]
-        ls, source = float(np.median([g[0] for g in got])), f"median over the targets of {got[0][1]}"
+        got = [noise_weights(scene.target(t), data[t].pooled, data[t].pooled_ok, params, c["tr"].downsample,
+                             linear=True) for c in cams for t in c["targets"]]
+        ls, source = float(np.median([g[0] for g in got])), f"median over the targets of {got[0][2]}"
+        if params.lr is None:  # the ridge follows the noise as for a known albedo (objcam.solvers.plan.rules)
+            params = params.model_copy(update={"lr": float(np.median([g[1] for g in got]))})
     X, rho = res.x, [np.asarray(r, np.float64) for r in res.rho]
     warm: list = [None] * len(cams)
     info: dict = {}
@@ -169,8 +171,8 @@ def final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel
             kkt[l] = [np.max(q.kkt_residual) for q in r.results]
             hist.append(r.objective_history)
     solved = np.ones(n, bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
-    return X, {"ls_relative": ls, "prior": "edges", "edge_eps": eps, "tone": params.edge_tone,
-               "texel_group": texel_group(params, known=True), "kkt_residual_max": float(kkt.max()),
+    return X, {"ls_relative": ls, "lr_relative": params.ridge, "prior": "edges", "edge_eps": eps,
+               "tone": params.edge_tone, "texel_group": texel_group(params, known=True), "kkt_residual_max": float(kkt.max()),
                "objective_history": hist, "solved": solved,
                **({"weak_texels": params.weak_texels, "texels_weak": int(weak.sum())} if weak is not None else {})}
 

@@ -78,8 +78,8 @@ class SolveParams(BaseModel):
         "(bench/results.md). method=adam always optimises the texels")
     lr: float | None = Field(
         None, ge=0, description="L2 (ridge) weight, relative like ls. None: for the known-albedo edge prior with ls "
-        f"from the noise, {DEFAULT_LR_REL:g} x min(1, sigma / {LR_SIGMA_REF:g}) (the ridge follows the noise as ls "
-        f"does); elsewhere {DEFAULT_LR_REL:g}")
+        f"from the noise (a known albedo; an unknown one's final envmaps, at the targets' median), {DEFAULT_LR_REL:g} "
+        f"x min(1, sigma / {LR_SIGMA_REF:g}) (the ridge follows the noise as ls does); elsewhere {DEFAULT_LR_REL:g}")
     weak_texels: Literal["keep", "exclude", "tie"] = Field(
         "exclude", description="known albedo, and the unknown albedo's final step (final_envmap=known, on its own "
         "A = diag(rho) A'): texels the photo barely sees (column norm under weak_fraction x the "
@@ -199,6 +199,6 @@ class SolveParams(BaseModel):
 
     @property
     def ridge(self) -> float:
-        """The relative ridge weight where no noise rule applies (the quadratic prior, the joint solve, the
+        """The relative ridge weight where no noise rule applies (the quadratic prior, the joint solve itself, the
         verdict's uncertainty): ``lr``, else the fixed default."""
         return DEFAULT_LR_REL if self.lr is None else self.lr
