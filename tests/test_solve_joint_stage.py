@@ -14,6 +14,8 @@ import pytest
 
 from objcam.image_io import read_exr
 from objcam.pipeline.cli import main
+from objcam.solvers.plan.defaults import EDGE_LS_PER_SIGMA
+from objcam.solvers.plan.rules import noise_lr
 
 # solve.pinned_scale=false: this tiny capture (direct light only, 22.5-degree texels under a low sunrise sun) has a
 # model error in the object's pixels that a scale pinned by their data alone passes on (measured: envmap relative
@@ -164,6 +166,22 @@ def test_a_broken_answer_fails_the_joint_bounds(capture, tmp_path, broken):
         assert all("albedo_as_estimated" in v for v in missed.values()), missed
 
 
+def test_the_final_envmaps_ridge_follows_the_noise_unless_given(capture, tmp_path, monkeypatch):
+    """The final step's known-albedo solve takes the noise's ridge at the targets' median (this capture's noise
+    is above the rule's reference, so the rule's ridge is made smaller here by stubbing the noise rule's lr); a
+    given solve.lr is used as given."""
+    import objcam.solvers.plan.final as final
+
+    real = final.noise_weights
+    monkeypatch.setattr(final, "noise_weights", lambda *a, **k: (*real(*a, **k)[:1], 2.5e-5, real(*a, **k)[2]))
+    for name, sets, want in (("rule", [], 2.5e-5), ("given", ["--set", "solve.lr=3e-4"], 3e-4)):
+        work = tmp_path / name
+        assert main(["run", str(capture), "--until", "solve", "--work", str(work), *RUN, *sets]) == 0
+        for t in ("cam0_rot0", "cam0_rot150"):
+            fin = json.loads((work / "solve" / t / "solve.json").read_text())["final_envmap"]
+            assert fin["lr_relative"] == pytest.approx(want), (name, fin["lr_relative"])
+
+
 def test_the_final_step_beats_the_joint_solves_own_envmaps_and_albedo(capture, tmp_path):
     """solve.final_envmap=known (the default) follows the joint solve with rounds of the albedo's TV step and every
     envmap solved again at that albedo by the known-albedo solver. Against the joint solve's own result
@@ -196,6 +214,8 @@ def test_the_final_step_beats_the_joint_solves_own_envmaps_and_albedo(capture, t
         info = json.loads((capture / "objcam" / "solve" / t / "solve.json").read_text())
         fin = info["final_envmap"]
         assert fin["prior"] == "edges" and fin["tone"] > 0 and fin["kkt_residual_max"] < 1e-8
+        # the ridge follows the noise as for a known albedo, at the noise that set ls (1.5 sigma, the targets' median)
+        assert fin["lr_relative"] == pytest.approx(noise_lr(fin["ls_relative"] / EDGE_LS_PER_SIGMA)), fin
         assert fin["rounds"] == 2 and min(fin["albedo_tv"]["edges"]) > 1000
         # the TV contrast chosen by GCV (objcam.solvers.albedo_gcv) from the ladder 0.006 x 4^k: the lowest score
         tv = fin["albedo_tv"]
