@@ -172,7 +172,8 @@ def final_envmaps(cams: list[dict], rhos: list[np.ndarray], grid: EnvGrid, texel
             hist.append(r.objective_history)
     solved = np.ones(n, bool) if P is None else sp.csr_matrix(P).getnnz(axis=1) > 0
     return X, {"ls_relative": ls, "lr_relative": params.ridge, "prior": "edges", "edge_eps": eps,
-               "tone": params.edge_tone, "texel_group": texel_group(params, known=True), "kkt_residual_max": float(kkt.max()),
+               "tone": params.edge_tone, "texel_group": texel_group(params, known=True),
+               "kkt_residual_max": float(kkt.max()),
                "objective_history": hist, "solved": solved,
                **({"weak_texels": params.weak_texels, "texels_weak": int(weak.sum())} if weak is not None else {})}
 

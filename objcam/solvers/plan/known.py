@@ -205,7 +205,8 @@ def choose_ls(target, d: TargetData, grid: EnvGrid, params: SolveParams, linear:
     """The relative smoothness and ridge weights: params.ls, else from the target's noise
     (objcam.solvers.plan.rules.noise_weights; ``linear``: the edge prior's rule), replaced by the auto_reg rule's
     choice unless it is off; params.lr, else for the edge prior with ls from the noise the noise's ridge
-    (rules.noise_lr), else the fixed default. Returns (ls, lr, the source of ls, the auto_reg record or None). Call with one BLAS thread."""
+    (rules.noise_lr), else the fixed default. Returns (ls, lr, the source of ls, the auto_reg record or None).
+    Call with one BLAS thread."""
     tr, use, y = d.transport, d.use, d.y
     C = tr.A.shape[0]
     rule = params.auto_reg if params.auto_reg != "off" else None
