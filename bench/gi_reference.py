@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.run import box_transport, group_note
 from bench.sections import invocation, write_section
 
 OUT = Path("bench/out/gi")
@@ -138,7 +139,6 @@ def build_a(cap: Path, work: Path, sets: list[str]) -> tuple[object, dict]:
     stage came from the cache, its summary, the group measured). The box-texel A (``cam0``, bench.run.box_transport)
     rather than t0's own: with texel_kernel=auto a target may keep point-source or narrow columns at its bright
     blobs, by design not the one-hot box texel the reference renders."""
-    from bench.run import box_transport
     from objcam.pipeline.engine import Pipeline, parse_overrides
 
     pipe = Pipeline(cap, work, parse_overrides(sets), quiet=True)
@@ -335,8 +335,8 @@ def markdown(res: dict, argv) -> str:
         met = "met" if r["column_error"] <= TARGET else "missed" if r["model"].startswith("auto") else ""
         when = f"{r['seconds']:.1f}" + (" (cached: an earlier run's)" if r["cached"] else "")
         e = r["energy_ratio"]
-        group = "" if r.get("group", "cam0") == "cam0" else f" ({r['group']})"
-        L.append(f"| {r['model']} | {100 * r['column_error']:.2f}%{group} | {met} | {when} | "
+        err = f"{100 * r['column_error']:.2f}%{group_note(r.get('group', 'cam0'))}"
+        L.append(f"| {r['model']} | {err} | {met} | {when} | "
                  f"{100 * float(np.median(r['per_column'])):.2f}% / {100 * max(r['per_column']):.2f}% | "
                  f"{float(np.median(e)):.3f} ({min(e):.3f}-{max(e):.3f}) | {r['summary'][:120]} |")
     return "\n".join(L)

@@ -173,6 +173,11 @@ def box_transport(folder: Path, first: str):
     return load_transport(folder, first), read_index(folder)["targets"][first]
 
 
+def group_note(group: str) -> str:
+    """The note beside a column error measured on another group than the box-texel ``cam0`` (:func:`box_transport`)."""
+    return "" if group == "cam0" else f" ({group})"
+
+
 def column_error(tr, ref: dict) -> float:
     """Relative column L2 of A against the reference, with the reference's own Monte-Carlo noise removed:
     E||a - r||^2 = ||a - r_true||^2 + sigma^2, and sigma^2 = E||r_a - r_b||^2 / 2 from the two renders."""
@@ -345,8 +350,7 @@ def render_markdown(a_rows, rows, hdris, target_spp, ref, args) -> str:
     for r in a_rows:
         load = "" if r.get("load") is None else f"{r['load']:.1f}"
         kept = ", ".join(f"{h} {k}" for h, k in r.get("kernels", {}).items())
-        group = r.get("error_group", "cam0")
-        err = f"{100 * r['column_error']:.2f}%" + ("" if group == "cam0" else f" ({group})")
+        err = f"{100 * r['column_error']:.2f}%{group_note(r.get('error_group', 'cam0'))}"
         lines.append(f"| {r['setting']} | {seconds_cell(r['seconds'], r.get('cached', False))} | {load} | {err} | "
                      f"{r['pixels']:,} x {r['texels']:,} | {kept} |")
     lines += ["", "### Solve: time and envmap error per HDRI", "",

@@ -102,13 +102,13 @@ def targets(rows: list[dict]) -> list[str]:
             line(low_red == len(low), f"the verdict: every target with SSIM < 0.4 graded red: {low_red} of "
                  f"{len(low)}" + (f" (not red: {', '.join(r['target'] for r in low if r['verdict']['grade'] != 'red')})"
                                   if low_red < len(low) else ""))
-            blind = {r["target"] for r in graded if _ssim_blind(r)}
+            blind = {r["target"] for r in high if _ssim_blind(r)}
+            blind_red = sorted(blind.intersection(high_red))
             line(not high_red, f"no target with SSIM >= 0.7 graded red: {len(high_red)} of {len(high)}"
                  + (f" ({', '.join(high_red)})" if high_red else "")
-                 + (f"; of them {len(blind & set(high_red))} where SSIM cannot tell a map from a flat one (the truth's"
-                    f" constant map scores >= {SSIM_BLIND}: {', '.join(sorted(blind & set(high_red)))}), so "
-                    f"{len(set(high_red) - blind)} of {len({r['target'] for r in high} - blind)} otherwise"
-                    if blind & set(high_red) else ""))
+                 + (f"; of them {len(blind_red)} where SSIM cannot tell a map from a flat one (the truth's constant "
+                    f"map scores >= {SSIM_BLIND}: {', '.join(blind_red)}), so {len(high_red) - len(blind_red)} of "
+                    f"{len(high) - len(blind)} otherwise" if blind_red else ""))
     if unsolved:
         for kind in sorted({r["status"] for r in unsolved}):
             k = [r for r in unsolved if r["status"] == kind]
