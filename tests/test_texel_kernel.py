@@ -183,3 +183,57 @@ def test_pick_keeps_box_texels_unless_a_candidate_fits_better_than_the_chi2_spre
     assert pick(res, ["a", "b"], joint=True) == {"a": "point", "b": "point"}
     res["point"]["b"]["chi2"] = 1.2 - 0.9 * spread
     assert pick(res, ["a", "b"], joint=True) == {"a": "box", "b": "box"}
+
+
+def test_a_candidates_columns_and_gram_match_a_rebuilt_a_and_the_box_a_is_left_as_it_was():
+    """kernel.replace_direct keeps a candidate as its changed columns (no copy of A): its Gram matrix must equal
+    the Gram of the A rebuilt with those columns (to float64 rounding), ``swapped`` must show that A inside and
+    give the box A back afterwards, even when the pilot inside fails. Broken versions this catches: the Gram's
+    (pos, pos) block left as A_old^T A_new (off by delta^T a_new, ~1e-2 here), or A not restored."""
+    from objcam.solvers import gram
+    from objcam.transport.kernel import replace_direct, swapped
+    from tests.toy_scenes import sphere_shadow_toy
+
+    tr, _ = sphere_shadow_toy(EnvGrid(8), 12)
+    box = tr.A.copy()
+    tr._gram = np.stack([gram(tr.A[0])])
+    rng = np.random.default_rng(3)
+    pos = np.array([2, 5, 6, 30])
+    delta = (0.02 * rng.standard_normal((1, tr.n_pixels, pos.size))).astype(np.float32)
+    cand = replace_direct(tr, pos, delta)
+    rebuilt = box.copy()
+    rebuilt[:, :, pos] += delta
+    want = gram(rebuilt[0])
+    assert np.array_equal(tr.A, box)  # the candidate did not touch A
+    assert np.abs(cand.gram[0] - want).max() <= 1e-12 * np.abs(want).max()
+    assert np.array_equal(cand.gram[0], cand.gram[0].T)
+    with swapped(tr, cand) as t2:
+        assert np.array_equal(t2.A, rebuilt) and t2.gram() is cand.gram
+    assert np.array_equal(tr.A, box)
+    with pytest.raises(RuntimeError):
+        with swapped(tr, cand):
+            raise RuntimeError("a pilot that fails")
+    assert np.array_equal(tr.A, box)
+
+
+def test_write_columns_replaces_only_the_candidates_columns(tmp_path):
+    """storage.write_columns copies a group and sets the given columns (across two column chunks) and the Gram."""
+    import zarr
+
+    from objcam.transport.storage import write_columns
+
+    src = tmp_path / "src"
+    g = zarr.open_group(str(src), mode="w", zarr_format=3)
+    A = np.arange(2 * 5 * 10, dtype=np.float32).reshape(2, 5, 10)
+    g.create_array("A", shape=A.shape, chunks=(2, 5, 4), dtype=np.float32)[...] = A
+    g.create_array("texel_index", shape=(10,), dtype=np.int64)[...] = np.arange(100, 110)
+    pos = np.array([1, 6, 9])
+    cols = -np.ones((2, 5, 3), np.float32) * np.array([1, 2, 3], np.float32)
+    write_columns(src, tmp_path / "dst", pos, cols, np.eye(10)[None].repeat(2, 0))
+    out = zarr.open_group(str(tmp_path / "dst"), mode="r")
+    want = A.copy()
+    want[:, :, pos] = cols
+    assert np.array_equal(out["A"][...], want)
+    assert out.attrs["narrow_texels"] == [101, 106, 109]
+    assert np.array_equal(np.load(tmp_path / "dst" / "gram.npy"), np.eye(10)[None].repeat(2, 0))
+    assert np.array_equal(zarr.open_group(str(src), mode="r")["A"][...], A)  # the source is left as it was

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ValidationError
 
 from objcam import __version__
 from objcam.errors import ObjcamError, StageError
+from objcam.heap import reuse_freed_memory
 from objcam.image_io import atomic_write_text
 from objcam.pipeline import graph
 from objcam.pipeline import integrity, workdir
@@ -332,7 +333,7 @@ class Pipeline:
         load = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
         t0 = time.perf_counter()
         try:
-            with _PeakRSS() as mem:
+            with _PeakRSS() as mem, reuse_freed_memory():  # no page faults for each large temporary array
                 outputs = mod.run(inputs, parts["params"])
         except ObjcamError:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -31,6 +31,8 @@ hard suite and the core bench's capture: bench/results.md, issue 22, session 28.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -111,11 +113,21 @@ def compact_blobs(envmap: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return grown & mask
 
 
-def compact_transport(tr, direct, texels: np.ndarray):
-    """A copy of the box Transport ``tr`` whose columns of the grid texels ``texels`` are the narrow kernel's
-    direct light (plus the box A's indirect part, which the kernel does not change), with its Gram matrix updated;
-    ``direct``: the box A's direct-light model (objcam.transport.direct.SplitDirect). Returns (Transport, the
-    changed columns' positions)."""
+@dataclass
+class Columns:
+    """A candidate A that differs from the box Transport's in a few columns: their positions ``pos`` (B,), their
+    new values ``cols`` (C, M, B) float32 and the candidate's whole Gram matrix ``gram`` (C, N, N) float64. Kept
+    as columns, not a copy of A (the copies and their first-touch pages were ~1 s of the demo's transport)."""
+
+    pos: np.ndarray
+    cols: np.ndarray
+    gram: np.ndarray
+
+
+def compact_columns(tr, direct, texels: np.ndarray) -> Columns:
+    """The box Transport ``tr`` with the columns of the grid texels ``texels`` made the narrow kernel's direct
+    light (plus the box A's indirect part, which the kernel does not change); ``direct``: the box A's direct-light
+    model (objcam.transport.direct.SplitDirect)."""
     import copy
 
     from objcam.transport.direct import DirectStats, SplitDirect
@@ -129,30 +141,45 @@ def compact_transport(tr, direct, texels: np.ndarray):
         return c
 
     narrow = SplitDirect([(rows, narrowed(dm)) for rows, dm in direct.parts], direct.m)
-    return replace_direct(tr, pos, narrow.columns(tex) - direct.columns(tex)), pos
+    return replace_direct(tr, pos, narrow.columns(tex) - direct.columns(tex))
 
 
-def replace_direct(tr, pos: np.ndarray, delta: np.ndarray):
-    """A copy of the Transport ``tr`` with ``delta`` (C, M, B) added to its columns ``pos`` (B,) (a change of their
-    direct light; the indirect part kept) and its Gram matrix updated to match."""
-    import dataclasses
-
+def replace_direct(tr, pos: np.ndarray, delta: np.ndarray) -> Columns:
+    """The Transport ``tr`` with ``delta`` (C, M, B) added to its columns ``pos`` (B,) (a change of their direct
+    light; the indirect part kept), as :class:`Columns` with the Gram matrix updated to match. Only A's columns
+    change, so only the Gram's rows and columns ``pos`` do: A_new^T a_new = A^T a_new, except at ``pos`` where it
+    is a_new^T a_new (A itself is read, not copied)."""
     from objcam.solvers.regularization import _block_rows
 
-    A = tr.A.copy()
-    A[:, :, pos] += delta
+    pos = np.asarray(pos, np.int64)
+    cols = (tr.A[:, :, pos] + delta).astype(np.float32)
     G = np.array(tr.gram(), np.float64)
-    step = _block_rows(A.shape[2])  # float64 row blocks of A, as the Gram matrix itself is accumulated
-    for c in range(A.shape[0]):
-        cols = np.zeros((A.shape[2], pos.size))  # (N, B): A_c^T A_c[:, pos]
-        for r0 in range(0, A.shape[1], step):
-            blk = np.asarray(A[c, r0 : r0 + step], np.float64)
-            cols += blk.T @ blk[:, pos]
-        G[c][:, pos] = cols
-        G[c][pos, :] = cols.T
-    out = dataclasses.replace(tr, A=A)
-    out._gram = G
-    return out
+    step = _block_rows(tr.A.shape[2])  # float64 row blocks of A, as the Gram matrix itself is accumulated
+    for c in range(tr.A.shape[0]):
+        new = np.asarray(cols[c], np.float64)  # (M, B)
+        upd = np.zeros((tr.A.shape[2], pos.size))  # (N, B): A_c^T a_new
+        for r0 in range(0, tr.A.shape[1], step):
+            upd += np.asarray(tr.A[c, r0 : r0 + step], np.float64).T @ new[r0 : r0 + step]
+        upd[pos] = new.T @ new
+        G[c][:, pos] = upd
+        G[c][pos, :] = upd.T
+    return Columns(pos, cols, G)
+
+
+@contextmanager
+def swapped(tr, cand: Columns):
+    """The Transport ``tr`` with the candidate's columns and Gram matrix, inside: ``tr.A``'s columns are replaced
+    in place and put back on exit (so no A is copied; ``tr`` must not be used by another thread meanwhile)."""
+    import dataclasses
+
+    old = tr.A[:, :, cand.pos].copy()
+    tr.A[:, :, cand.pos] = cand.cols
+    try:
+        out = dataclasses.replace(tr, A=tr.A)
+        out._gram = cand.gram
+        yield out
+    finally:
+        tr.A[:, :, cand.pos] = old
 
 
 def point_sources(tr, direct, box: dict[str, dict], names: list[str]) -> dict[str, list]:
@@ -172,13 +199,13 @@ def point_sources(tr, direct, box: dict[str, dict], names: list[str]) -> dict[st
     return found
 
 
-def point_transport(tr, direct, sources: list):
-    """(the box Transport ``tr`` with point-source columns at ``sources`` (objcam.transport.points), the changed
-    columns' positions, the sources used: one a texel)."""
+def point_transport(tr, direct, sources: list) -> tuple[Columns | None, list]:
+    """(the box Transport ``tr`` with point-source columns at ``sources`` (objcam.transport.points) as
+    :class:`Columns`, None when no source gave one; the sources used: one a texel)."""
     from objcam.transport.points import point_columns
 
     pos, delta, used = point_columns(direct, tr.grid, tr.texel_index, sources)
-    return (replace_direct(tr, pos, delta) if pos.size else tr), pos, used
+    return (replace_direct(tr, pos, delta) if pos.size else None), used
 
 
 def pick(results: dict[str, dict[str, dict]], names: list[str], joint: bool) -> dict[str, str]:
@@ -242,34 +269,38 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
         metrics["seconds_narrow"] = mk.get("seconds")
     grid_blobs = {n: np.flatnonzero(compact_blobs(box[n]["envmap"], box[n]["mask"]).ravel()) for n in names}
     texels = np.unique(np.concatenate(list(grid_blobs.values())))
+    compact = None
     if texels.size and direct is not None:
-        compact, pos = compact_transport(box_tr, direct, texels)
+        compact = compact_columns(box_tr, direct, texels)
         asked = targets if joint else [t for t in targets if grid_blobs[t.name].size]
-        results["compact"] = pilot(art, asked, compact, capture)
-        metrics["compact_texels"] = int(pos.size)
-    points: dict[str, tuple] = {}  # group -> (Transport, changed positions, targets)
+        with swapped(box_tr, compact) as tr_c:
+            results["compact"] = pilot(art, asked, tr_c, capture)
+        metrics["compact_texels"] = int(compact.pos.size)
+    points: dict[str, tuple] = {}  # group -> (Columns, targets, sources used)
     if direct is not None:
         found = point_sources(box_tr, direct, box, names)
         with_src = [t for t in targets if found[t.name]]
         # each target its own sources (another target's lamp is not this one's), one A for a joint solve
         parts = [(sub + "p", with_src)] if joint else [(f"{sub}p{i}", [t]) for i, t in enumerate(with_src)]
         for g, ts in parts if with_src else []:
-            tr_p, ppos, used = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
-            if ppos.size:
-                points[g] = (tr_p, ppos, [t.name for t in ts], used)
-                got = pilot(art, targets if joint else ts, tr_p, capture)
+            cand, used = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
+            if cand is not None:
+                points[g] = (cand, [t.name for t in ts], used)
+                with swapped(box_tr, cand) as tr_p:
+                    got = pilot(art, targets if joint else ts, tr_p, capture)
                 results.setdefault("point", {}).update(got)
         if with_src:
             metrics["point_sources"] = {t.name: [s.record() for s in found[t.name]] for t in with_src}
     choice = pick(results, names, joint)  # a candidate only where results has it, so its A and columns are set
     groups = {"box": sub, "narrow": sub + "k", "compact": sub + "c"}
     if "compact" in choice.values():
-        write_columns(out / sub, out / (sub + "c"), compact.A, pos, compact._gram)
+        write_columns(out / sub, out / (sub + "c"), compact.pos, compact.cols, compact.gram)
     group = {n: groups.get(c) for n, c in choice.items()}
-    for g, (tr_p, ppos, owners, used) in points.items():
+    for g, (cand, owners, used) in points.items():
         took = [n for n in owners if choice[n] == "point"]
         if took:
-            write_columns(out / sub, out / g, tr_p.A, ppos, tr_p._gram, {"point_sources": [s.record() for s in used]})
+            write_columns(out / sub, out / g, cand.pos, cand.cols, cand.gram,
+                          {"point_sources": [s.record() for s in used]})
         group.update({n: g for n in took})
     mapping.update(group)
     for g in (sub, sub + "k"):

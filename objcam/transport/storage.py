@@ -132,9 +132,9 @@ def add_to_columns(folder: str | Path, delta_fn, chunk_columns: int | None = Non
             progress.update(b - a)
 
 
-def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarray, gram: np.ndarray,
+def write_columns(src: str | Path, dst: str | Path, pos: np.ndarray, cols: np.ndarray, gram: np.ndarray,
                   attrs: dict | None = None) -> None:
-    """A group ``dst``: the group ``src`` with A's columns ``pos`` replaced by those of ``A`` (C, M, N) and its
+    """A group ``dst``: the group ``src`` with A's columns ``pos`` (B,) replaced by ``cols`` (C, M, B) and its
     Gram matrix ``gram`` (C, N, N) (objcam.transport.kernel's compact kernel and point sources), ``attrs`` added
     to its attributes. The stage's folder is temporary until it finishes, so the copy needs no atomic step of its
     own; gram.npy is written as write_gram writes it."""
@@ -146,9 +146,13 @@ def write_columns(src: str | Path, dst: str | Path, A: np.ndarray, pos: np.ndarr
     g = zarr.open_group(str(dst), mode="r+")
     arr = g["A"]
     step = arr.chunks[2]
+    pos = np.asarray(pos, np.int64)
     for a in sorted({int(p) // step * step for p in pos}):
         b = min(arr.shape[2], a + step)
-        arr[:, :, a:b] = A[:, :, a:b]
+        chunk = arr[:, :, a:b]
+        sel = np.flatnonzero((pos >= a) & (pos < b))
+        chunk[:, :, pos[sel] - a] = cols[:, :, sel]
+        arr[:, :, a:b] = chunk
     g.attrs["narrow_texels"] = [int(t) for t in np.asarray(g["texel_index"][...])[pos]]
     g.attrs.update(attrs or {})
     _save_gram(dst, gram.shape[0], gram.shape[1], iter(gram))
