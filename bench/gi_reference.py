@@ -216,6 +216,17 @@ def column_errors(A: np.ndarray, cols: np.ndarray, ref: dict) -> tuple[float, li
     return math.sqrt(num / den), per
 
 
+def part_errors(A: np.ndarray, cols: np.ndarray, ref: dict, on_object: np.ndarray) -> dict[str, float]:
+    """{"object", "support"}: :func:`column_errors` over the pixels that see the object (``on_object`` (M,) bool)
+    and over the others: the object's pixels (their faceted normals, 256 sub-pixel samples) and the support's have
+    their own sampling, so their errors are told apart."""
+    out = {}
+    for name, rows in (("object", on_object), ("support", ~on_object)):
+        sub = dict(ref, ref_a=ref["ref_a"][:, rows], ref_b=ref["ref_b"][:, rows])
+        out[name] = column_errors(A[rows], cols, sub)[0] if rows.any() else float("nan")
+    return out
+
+
 def energy_ratios(A: np.ndarray, cols: np.ndarray, ref: dict) -> list[float]:
     """Per reference column, the light A's column puts in the image over the reference's: sum_i a_ij / sum_i r_ij
     (r the mean of the two renders; a texel A dropped counts 0). A: (M, N) grey columns; cols: (n,) as for
@@ -297,9 +308,10 @@ def main(argv: list[str] | None = None) -> int:
         cols = np.array([pos.get(t, -1) for t in flat])  # a texel A dropped (below the horizon): a zero column
         A = np.asarray(tr.A.mean(axis=0) if tr.A.shape[0] > 1 else tr.A[0], np.float64)
         err, per = column_errors(A, cols, ref)
+        parts = part_errors(A, cols, ref, np.asarray(tr.object_fraction) > 0)
         energy = energy_ratios(A, cols, ref)
         rows.append({"model": label, "sets": sets, "column_error": err, "per_column": per, "energy_ratio": energy,
-                     **prov})
+                     "column_error_object": parts["object"], "column_error_support": parts["support"], **prov})
         log(f"  column error {100 * err:.2f}%; energy A / reference per column: "
             + " ".join(f"{e:.3f}" for e in energy))
     res = {"size": tr.camera.width if a.capture else size, "columns": n_cols, "spp": spp, "max_depth": a.max_depth,
@@ -328,15 +340,17 @@ def markdown(res: dict, argv) -> str:
          f"The one-hot texels as Mitsuba emits them: power within "
          f"{100 * max(abs(p) for p in res['power_error']):.2f}% of the box's solid angle, centre within "
          f"{max(res['direction_offset_deg']):.2f} deg. Raw rows: {res.get('raw', 'bench/gi_rows.json')}.", "",
-         "| A | column error (GI reference) | target <= 1.5% | A time (s) | median / max column error | "
-         "energy A / reference: median (min-max) | transport |",
-         "|---|---:|---|---:|---:|---:|---|"]
+         "| A | column error (GI reference) | target <= 1.5% | object / support pixels | A time (s) | "
+         "median / max column error | energy A / reference: median (min-max) | transport |",
+         "|---|---:|---|---:|---:|---:|---:|---|"]
     for r in res["rows"]:
         met = "met" if r["column_error"] <= TARGET else "missed" if r["model"].startswith("auto") else ""
         when = f"{r['seconds']:.1f}" + (" (cached: an earlier run's)" if r["cached"] else "")
         e = r["energy_ratio"]
         err = f"{100 * r['column_error']:.2f}%{group_note(r.get('group', 'cam0'))}"
-        L.append(f"| {r['model']} | {err} | {met} | {when} | "
+        split = (f"{100 * r['column_error_object']:.2f}% / {100 * r['column_error_support']:.2f}%"
+                 if "column_error_object" in r else "-")
+        L.append(f"| {r['model']} | {err} | {met} | {split} | {when} | "
                  f"{100 * float(np.median(r['per_column'])):.2f}% / {100 * max(r['per_column']):.2f}% | "
                  f"{float(np.median(e)):.3f} ({min(e):.3f}-{max(e):.3f}) | {r['summary'][:120]} |")
     return "\n".join(L)

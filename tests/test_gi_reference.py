@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from bench.gi_reference import column_errors, energy_ratios
+from bench.gi_reference import column_errors, energy_ratios, part_errors
 
 
 def test_energy_ratio_and_column_error_of_known_columns():
@@ -20,6 +20,21 @@ def test_energy_ratio_and_column_error_of_known_columns():
     assert energy_ratios(A, np.array([-1]), ref) == [0.0]  # a texel A dropped lights nothing
     _, per = column_errors(A, np.array([0, 1, 2]), ref)
     assert per[0] == pytest.approx(0.0) and per[1] == pytest.approx(0.1) and per[2] > 0.2
+
+
+def test_the_column_error_splits_into_the_objects_pixels_and_the_supports():
+    """A 10% too bright on the first 10 pixels (the "object") only: its part's error is 10%, the support's 0, and
+    the whole's lies between (a split that mixed the parts up, or ignored ``on_object``, fails)."""
+    rng = np.random.default_rng(1)
+    r = rng.uniform(0.5, 1.5, (2, 40))
+    ref = {"ref_a": r, "ref_b": r}
+    A = r.T.copy()
+    A[:10] *= 1.1
+    on_object = np.arange(40) < 10
+    parts = part_errors(A, np.array([0, 1]), ref, on_object)
+    assert parts["object"] == pytest.approx(0.1) and parts["support"] == pytest.approx(0.0, abs=1e-12)
+    whole, _ = column_errors(A, np.array([0, 1]), ref)
+    assert 0.0 < whole < 0.1
 
 
 def test_a_hard_capture_is_measured_through_its_own_camera(tmp_path, capsys):
