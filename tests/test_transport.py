@@ -467,6 +467,6 @@ def test_round_pairs_across_a_horizon_take_all_samples_unshadowed_light(art, mon
         return float(np.sqrt(((a - ref)[sel] ** 2).sum() / (ref[sel] ** 2).sum()))
 
     now = error()
-    monkeypatch.setattr(DirectModel, "_unshadowed", lambda self, pix, tex, above: None)
+    monkeypatch.setattr(DirectModel, "_unshadowed", lambda self, pix, tex, skip: None)
     before = error()
     assert now < 0.034 < before, (now, before)

@@ -396,27 +396,27 @@ class DirectModel:
             tex = texels[bi]
             rnd = self._rounds(pi, tex)
             num, den, n_act, n_vis = self._trace(pi, tex, rnd * self.k, self.k, salt=0)
-            full = self._unshadowed(pi, tex, flat[1][li]) if self.rounds > 1 else None
+            # pairs near a shadow boundary (their rays, or their neighbours' in the image, were both blocked and
+            # not) get all S rays instead, one per sub-pixel sample: no unshadowed pass for them
+            refine = self.refine and self.rounds > 1
+            sel = self._boundary(b, pi, bi, n_act, n_vis, analytic) if refine else np.zeros(pi.size, bool)
+            full = self._unshadowed(pi, tex, flat[1][li] | sel) if self.rounds > 1 else None
             out_f[:, li] = self._estimate(flat, li, pi, num, den, rnd, full).T
-            if self.refine and self.rounds > 1:
-                # pairs near a shadow boundary (their rays, or their neighbours' in the image, were both blocked
-                # and not) get all S rays instead, one per sub-pixel sample
-                sel = self._boundary(b, pi, bi, n_act, n_vis, analytic)
-                if sel.any():
-                    ri, rb = pi[sel], bi[sel]
-                    st.pairs_refined += int(sel.sum())
-                    num, den, _, _ = self._trace_all(ri, texels[rb])
-                    out_f[:, li[sel]] = self._estimate(flat, li[sel], ri, num, den, None).T
+            if sel.any():
+                ri, rb = pi[sel], bi[sel]
+                st.pairs_refined += int(sel.sum())
+                num, den, _, _ = self._trace_all(ri, texels[rb])
+                out_f[:, li[sel]] = self._estimate(flat, li[sel], ri, num, den, None).T
         if self.bg is not None:
             out += self.bg[:, texels].toarray()[None].astype(np.float32)
         return out
 
-    def _unshadowed(self, pix: np.ndarray, tex: np.ndarray, above: np.ndarray) -> np.ndarray:
-        """(T, C): for the pairs not above every sample's horizon (``above`` (T,) False), the pixel's unshadowed
-        light from the texel, sum over all S samples of rho max(0, n . w) Omega / (pi S) with one direction each
-        (no shadow ray: cheap); NaN for the others (their unshadowed value is exact already)."""
+    def _unshadowed(self, pix: np.ndarray, tex: np.ndarray, skip: np.ndarray) -> np.ndarray:
+        """(T, C): for the pairs with ``skip`` (T,) False (not above every sample's horizon, not re-traced), the
+        pixel's unshadowed light from the texel, sum over all S samples of rho max(0, n . w) Omega / (pi S) with one
+        direction each (no shadow ray: cheap); NaN for the others (exact already, or about to be re-traced)."""
         out = np.full((pix.size, self.c), np.nan)
-        sel = np.flatnonzero(~above)
+        sel = np.flatnonzero(~skip)
         if sel.size:
             _, den, _, _ = self._trace(pix[sel], tex[sel], np.zeros(sel.size, np.int64), self.n_sub, salt=1,
                                        test=False)
@@ -444,7 +444,7 @@ class DirectModel:
             vals[ib] = num[ib] * scale[:, None]
             if full is not None:  # the round's visible fraction times all S samples' unshadowed light
                 nb, db, fb = num[ib], den[ib], full[ib]
-                ok = db > 0
+                ok = (db > 0) & np.isfinite(fb)  # (a pair to be re-traced keeps the former value meanwhile)
                 vals[ib] = np.where(ok, fb * np.divide(nb, db, out=np.zeros_like(nb), where=ok), vals[ib])
         return vals
 
