@@ -27,7 +27,14 @@ elevation. This step asks the data, after the solve, whether the detail is their
 4. where the profile is kept, the envmap is solved again with the same prior on the profile model (one unknown per
    row's sky texels, the sources and their rims as before: objcam.solvers.plan.known), so that the rows' levels
    and the sources are fitted together instead of averaged from a map that had patches to spend: the test decides
-   the model, the solve estimates within it.
+   the model, the solve estimates within it;
+5. no source or rim is left darker than its row's sky (:func:`floor_step`): in the profile model the sky lies
+   behind every source, and a source's texel or rim below its row's value is the fit's answer to a light smaller
+   than a texel (its sub-texel shadows), the dark ring session 27 found, not light. Each such texel is raised to its
+   row's value (per channel, the larger); the rows and the sources' peaks stay as step 4 solved them. Measured on
+   the hard-case suite (session 36): 30 of the 48 maps that take the profile have such texels; 9 better by more
+   than 0.005 SSIM (lamp60_r251_n2 0.749 -> 0.801, lamp1_r251_n2 0.842 -> 0.878, lamp10_r0_n2 0.821 -> 0.848),
+   none worse.
 
 A sky the photo does see in azimuth (an HDRI's tree line, a bright horizon on one side) raises the misfit by
 hundreds of spreads and is left as solved; with low noise (the core bench's 0.1%) the spread is small and
@@ -140,3 +147,61 @@ def sky_profile(A, use: np.ndarray, y: np.ndarray, x: np.ndarray, grid: EnvGrid,
     info.update({"taken": taken, "ss_map": ss_map, "ss_profile": ss_prof, "ss_spread": spread,
                  "rise_over_spread": float(rise / spread) if spread > 0 else float("inf")})
     return SkyProfileResult(prof, info, sky, sky) if taken else SkyProfileResult(x, info, candidate=sky)
+
+
+def sky_floor(x: np.ndarray, basis: sp.spmatrix, sky: np.ndarray, rows: np.ndarray,
+              omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Step 5's map: ``x`` (N, 3) solved on the profile basis ``basis`` (N, N'; :func:`profile_basis`) with each
+    texel outside ``sky`` (N,) bool (the sources and their rims) whose luminance (channel mean) lies below its
+    row's sky raised to that row's value, per channel the larger of the two. The row's value: the solid-angle
+    (``omega`` (N,), sr) weighted mean of its sky texels; rows (N,) the lat-long row of each texel. Only texels
+    whose whole group of the basis lies in one row with sky texels are raised (a group stays one value); texels
+    outside every group (unsolved) stay as they are. Returns (the map, the (N,) bool texels raised)."""
+    x = np.asarray(x, np.float64)
+    B = sp.csr_matrix(basis)
+    inside = B.getnnz(axis=1) > 0
+    sky = np.asarray(sky, bool) & inside
+    rows = np.asarray(rows, np.int64)
+    n_rows = int(rows.max()) + 1 if rows.size else 0
+    w = np.asarray(omega, np.float64) * sky
+    den = np.bincount(rows, weights=w, minlength=n_rows)
+    level = np.stack([np.bincount(rows, weights=w * x[:, c], minlength=n_rows) for c in range(x.shape[1])], axis=1)
+    level /= np.where(den > 0, den, 1.0)[:, None]
+    cand = inside & ~sky & (den > 0)[rows]
+    # groups wholly inside one row, every texel a candidate (a weak texel tied to a texel above spans two rows)
+    gid = np.asarray(B.argmax(axis=1)).ravel()
+    k = B.shape[1]
+    lo = np.full(k, n_rows)
+    hi = np.full(k, -1)
+    np.minimum.at(lo, gid[inside], rows[inside])
+    np.maximum.at(hi, gid[inside], rows[inside])
+    bad = np.zeros(k, bool)
+    bad[gid[inside & ~cand]] = True
+    ok = cand & (lo[gid] == hi[gid]) & ~bad[gid]
+    low = ok & (x.mean(axis=1) < level[rows].mean(axis=1))
+    out = x.copy()
+    out[low] = np.maximum(x[low], level[rows[low]])
+    return out, low
+
+
+def floor_step(A, use: np.ndarray, Y: np.ndarray, x: np.ndarray, basis: sp.spmatrix, sky: np.ndarray,
+               rows: np.ndarray, omega: np.ndarray, sigma_abs: float | None) -> tuple[np.ndarray, dict]:
+    """Step 5 of the module docstring: (the raised map, its record for solve.json). A: (C, M, N); use: (M,) bool,
+    the rows step 4 fitted; Y: (M_use, 3) the target there; x: (N, 3) step 4's map; the rest as :func:`sky_floor`.
+
+    Not gated by the fit: a dark rim is how the fit absorbs the model error of a light smaller than a texel, so the
+    raised map misfits the photo by more than the solved map's own excess over the noise suggests, and yet is the
+    better map (a toy lamp a quarter of a texel wide over three spheres' shadows, 0.5% noise: 4-25 spreads of
+    misfit, tonemapped SSIM 0.929 -> 0.978, 0.892 -> 0.959, 0.645 -> 0.658). The record keeps the misfit's rise
+    (``rise_over_spread``, against ``sqrt(2 / M)`` x the map's sum of squares) and the map's excess for the reader."""
+    raised_x, raised = sky_floor(x, basis, sky, rows, omega)
+    info: dict = {"texels_raised": int(raised.sum())}
+    if not raised.any():
+        return x, info
+    ss_map = fit_residual(A, use, Y, x)[1]
+    ss_new = fit_residual(A, use, Y, raised_x)[1]
+    _, excess = misfit_allowance(ss_map, Y.size, sigma_abs)
+    spread = float(np.sqrt(2.0 / max(Y.size, 1)) * ss_map)
+    info.update({"ss_map": ss_map, "ss_floor": ss_new, "ss_excess": excess,
+                 "rise_over_spread": float((ss_new - ss_map) / spread) if spread > 0 else float("inf")})
+    return raised_x, info

@@ -44,7 +44,7 @@ from objcam.solvers.plan.rules import (
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.plan.verdict import chi2_per_value, dark_sky_area
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
-from objcam.solvers.skyprofile import misfit_allowance, profile_basis, sky_profile
+from objcam.solvers.skyprofile import floor_step, misfit_allowance, profile_basis, sky_profile
 from objcam.solvers.sources import fit_residual
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
@@ -145,6 +145,11 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             if "sources" in first:
                 edge_info["sources"] = first["sources"]
             rec["resolved"] = {"unknowns": int(basis.shape[1])}
+            # step 5: no source or rim darker than the sky behind it (the fit's answer to a lamp's sub-texel shadows)
+            fit4 = d.use if rejected is None else d.use & ~rejected
+            X, rec["floor"] = floor_step(tr.A, fit4, d.y[fit4], X, basis, got.candidate,
+                                         np.asarray(tr.texel_index, np.int64) // grid.width, tr.solid_angle,
+                                         sigma_abs)
         profile = got.candidate if keep else None
     else:  # no sky texel, or a supersampled A: the row means where their test kept them
         X, profile = got.x, got.sky
