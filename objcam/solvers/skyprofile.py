@@ -28,21 +28,13 @@ elevation. This step asks the data, after the solve, whether the detail is their
    row's sky texels, the sources and their rims as before: objcam.solvers.plan.known), so that the rows' levels
    and the sources are fitted together instead of averaged from a map that had patches to spend: the test decides
    the model, the solve estimates within it;
-5. on that sky of rows the bright blobs are sources: each is put back as one or two point sources where the data
-   place them better or as well (objcam.solvers.sources.compact_sources: within a chi-squared spread of the map's
-   fit; on the hard suite most fit the photo better than the blob), brightest first, stopping at the first blob
-   the data keep extended (an HDRI's sun and glow: its dimmer blobs are then clouds or façades, not lamps). The
-   edge prior spreads a lamp the photo cannot place to a texel over its neighbours, across the elevation bands;
-   measured on the hard-case suite (session 36): 8 targets better by more than 0.005 SSIM, 2 worse (a sunrise's glow
-   -0.021, sun55_r251_n0.5 -0.006), tonemapped RMSE 12 better / 2 worse, every band within [0.67, 1.5] of the
-   truth's energy in 53% -> 62% of the targets (the lamps at the bands' edges), the worst at 2% noise 0.306 -> 0.342;
-6. no source or rim is left darker than its row's sky (:func:`floor_step`): in the profile model the sky lies
+5. no source or rim is left darker than its row's sky (:func:`floor_step`): in the profile model the sky lies
    behind every source, and a source's texel or rim below its row's value is the fit's answer to a light smaller
    than a texel (its sub-texel shadows), the dark ring session 27 found, not light. Each such texel is raised to its
-   row's value (per channel, the larger); the rows and the sources' peaks stay as solved. Measured on the hard-case
-   suite (session 36, before step 5 existed): 30 of the 48 maps that take the profile have such texels; 9 better by
-   more than 0.005 SSIM (lamp60_r251_n2 0.749 -> 0.801, lamp1_r251_n2 0.842 -> 0.878, lamp10_r0_n2 0.821 ->
-   0.848), none worse.
+   row's value (per channel, the larger); the rows and the sources' peaks stay as step 4 solved them. Measured on
+   the hard-case suite (session 36): 30 of the 48 maps that take the profile have such texels; 9 better by more
+   than 0.005 SSIM (lamp60_r251_n2 0.749 -> 0.801, lamp1_r251_n2 0.842 -> 0.878, lamp10_r0_n2 0.821 -> 0.848),
+   none worse.
 
 A sky the photo does see in azimuth (an HDRI's tree line, a bright horizon on one side) raises the misfit by
 hundreds of spreads and is left as solved; with low noise (the core bench's 0.1%) the spread is small and
@@ -159,7 +151,7 @@ def sky_profile(A, use: np.ndarray, y: np.ndarray, x: np.ndarray, grid: EnvGrid,
 
 def sky_floor(x: np.ndarray, basis: sp.spmatrix, sky: np.ndarray, rows: np.ndarray,
               omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Step 6's map: ``x`` (N, 3) solved on the profile basis ``basis`` (N, N'; :func:`profile_basis`) with each
+    """Step 5's map: ``x`` (N, 3) solved on the profile basis ``basis`` (N, N'; :func:`profile_basis`) with each
     texel outside ``sky`` (N,) bool (the sources and their rims) whose luminance (channel mean) lies below its
     row's sky raised to that row's value, per channel the larger of the two. The row's value: the solid-angle
     (``omega`` (N,), sr) weighted mean of its sky texels; rows (N,) the lat-long row of each texel. Only texels
@@ -194,8 +186,8 @@ def sky_floor(x: np.ndarray, basis: sp.spmatrix, sky: np.ndarray, rows: np.ndarr
 
 def floor_step(A, use: np.ndarray, Y: np.ndarray, x: np.ndarray, basis: sp.spmatrix, sky: np.ndarray,
                rows: np.ndarray, omega: np.ndarray, sigma_abs: float | None) -> tuple[np.ndarray, dict]:
-    """Step 6 of the module docstring: (the raised map, its record for solve.json). A: (C, M, N); use: (M,) bool,
-    the rows step 4 fitted; Y: (M_use, 3) the target there; x: (N, 3) step 5's map; the rest as :func:`sky_floor`.
+    """Step 5 of the module docstring: (the raised map, its record for solve.json). A: (C, M, N); use: (M,) bool,
+    the rows step 4 fitted; Y: (M_use, 3) the target there; x: (N, 3) step 4's map; the rest as :func:`sky_floor`.
 
     Not gated by the fit: a dark rim is how the fit absorbs the model error of a light smaller than a texel, so the
     raised map misfits the photo by more than the solved map's own excess over the noise suggests, and yet is the

@@ -129,13 +129,11 @@ def _fit(cols: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float]:
 
 def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray, grid: EnvGrid,
                     texel_index: np.ndarray, factor: float = BRIGHT_FACTOR,
-                    max_blobs: int = MAX_BLOBS, stop_at_extended: bool = False) -> SourcesResult:
+                    max_blobs: int = MAX_BLOBS) -> SourcesResult:
     """The step of the module docstring. A (C, M, N) the transport (C = 1: grey, or 3), ``use`` (M,) bool the
     fitted rows, y (M, 3) the target at A's rows, x (N, 3) the solve's map at A's texels ``texel_index`` in
-    ``grid``. ``stop_at_extended``: the blobs are tried brightest first and the step stops at the first one the
-    data keep extended (a map whose brightest light is not a point, an HDRI's sun and glow, keeps its dimmer blobs
-    too: they are more likely clouds or façades than lamps). Returns the map and the record (blobs found,
-    collapsed, the misfit's change against its spread)."""
+    ``grid``. Returns the map and the record (blobs found, collapsed, the misfit's change against its
+    spread)."""
     x = np.asarray(x, np.float64)
     Y = np.asarray(y, np.float64)[use]
 
@@ -180,8 +178,6 @@ def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray
         else:
             rec["collapsed"] = False
         info["blobs"].append(rec)
-        if stop_at_extended and not rec["collapsed"]:
-            break
     info["collapsed"] = sum(b["collapsed"] for b in info["blobs"])
     info["ss_after"] = ss
     info["rise_over_spread"] = float((ss - ss0) / tol) if tol > 0 else 0.0

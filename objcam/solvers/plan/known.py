@@ -45,7 +45,7 @@ from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.plan.verdict import chi2_per_value, dark_sky_area
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.solvers.skyprofile import floor_step, misfit_allowance, profile_basis, sky_profile
-from objcam.solvers.sources import compact_sources, fit_residual
+from objcam.solvers.sources import fit_residual
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
 
@@ -117,9 +117,8 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     """params.sky_profile=auto (objcam.solvers.skyprofile) after the edge solve ``solved`` = (KKT, objective,
     iterations, edge record, rejected rows) of X (N, 3) at ``weights`` = (ls, lr), on the pixels ``fitted`` it
     fitted: where the row means' test fails, the profile model's own fit tested (step 3b); where a test keeps the
-    profile, the envmap solved again on the profile model (step 4), its sources as points where the data place them
-    (step 5) and no source or rim below its row's sky (step 6); a supersampled A keeps the row means and has no step
-    3b, 5 or 6. Returns (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool
+    profile, the envmap solved again on the profile model (step 4; a supersampled A keeps the row means and has no
+    step 3b). Returns (X, KKT, objective, iterations, edge record with ``sky_profile``, rejected rows, the (N,) bool
     texels given as their row's value or None)."""
     kkt, obj, iters, edge_info, rejected = solved
     X0 = X  # the edge solve's map
@@ -146,11 +145,8 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             if "sources" in first:
                 edge_info["sources"] = first["sources"]
             rec["resolved"] = {"unknowns": int(basis.shape[1])}
+            # step 5: no source or rim darker than the sky behind it (the fit's answer to a lamp's sub-texel shadows)
             fit4 = d.use if rejected is None else d.use & ~rejected
-            # step 5: on a sky of rows, the sources as points where the data place them (objcam.solvers.sources)
-            points = compact_sources(tr.A, fit4, d.y, X, grid, tr.texel_index, stop_at_extended=True)
-            X, rec["sources"] = points.x, points.info
-            # step 6: no source or rim darker than the sky behind it (the fit's answer to a lamp's sub-texel shadows)
             X, rec["floor"] = floor_step(tr.A, fit4, d.y[fit4], X, basis, got.candidate,
                                          np.asarray(tr.texel_index, np.int64) // grid.width, tr.solid_angle,
                                          sigma_abs)
