@@ -81,18 +81,25 @@ class SkyProfileResult:
     candidate: np.ndarray | None = None  # (N,) bool: the texels the test put to one value per row (taken or not)
 
 
+def row_means(x: np.ndarray, rows: np.ndarray, sky: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(level (R, C), weight (R,)): per lat-long row, the solid-angle (``omega`` (N,), sr) weighted mean of ``x``
+    (N, C) over its ``sky`` (N,) bool texels and their total solid angle (0 and 0 for a row without any); rows (N,)
+    the row of each texel, R = rows.max() + 1."""
+    rows = np.asarray(rows, np.int64)
+    n_rows = int(rows.max()) + 1 if rows.size else 0
+    w = np.asarray(omega, np.float64) * np.asarray(sky, bool)
+    den = np.bincount(rows, weights=w, minlength=n_rows)
+    num = np.stack([np.bincount(rows, weights=w * x[:, c], minlength=n_rows) for c in range(x.shape[1])], axis=1)
+    return num / np.where(den > 0, den, 1.0)[:, None], den
+
+
 def row_profile(x: np.ndarray, rows: np.ndarray, sky: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """(N, 3): ``x`` (N, 3) with each texel of ``sky`` (N,) bool set to the solid-angle (``omega`` (N,), sr)
     weighted mean of the ``sky`` texels of its row (``rows`` (N,) the lat-long row of each texel); the others
     as they are."""
     out = np.array(x, dtype=np.float64, copy=True)
-    r = rows[sky]
-    w = np.asarray(omega, np.float64)[sky]
-    n_rows = int(rows.max()) + 1 if rows.size else 0
-    den = np.bincount(r, weights=w, minlength=n_rows)
-    for c in range(out.shape[1]):
-        num = np.bincount(r, weights=w * out[sky, c], minlength=n_rows)
-        out[sky, c] = (num / np.where(den > 0, den, 1.0))[r]
+    level, _ = row_means(out, rows, sky, omega)
+    out[sky] = level[np.asarray(rows, np.int64)[sky]]
     return out
 
 
@@ -163,10 +170,7 @@ def sky_floor(x: np.ndarray, basis: sp.spmatrix, sky: np.ndarray, rows: np.ndarr
     sky = np.asarray(sky, bool) & inside
     rows = np.asarray(rows, np.int64)
     n_rows = int(rows.max()) + 1 if rows.size else 0
-    w = np.asarray(omega, np.float64) * sky
-    den = np.bincount(rows, weights=w, minlength=n_rows)
-    level = np.stack([np.bincount(rows, weights=w * x[:, c], minlength=n_rows) for c in range(x.shape[1])], axis=1)
-    level /= np.where(den > 0, den, 1.0)[:, None]
+    level, den = row_means(x, rows, sky, omega)
     cand = inside & ~sky & (den > 0)[rows]
     # groups wholly inside one row, every texel a candidate (a weak texel tied to a texel above spans two rows)
     gid = np.asarray(B.argmax(axis=1)).ravel()
