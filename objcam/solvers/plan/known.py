@@ -44,7 +44,7 @@ from objcam.solvers.plan.rules import (
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.plan.verdict import chi2_per_value, dark_sky_area
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
-from objcam.solvers.skyprofile import floor_step, misfit_allowance, profile_basis, sky_profile
+from objcam.solvers.skyprofile import floor_step, misfit_allowance, profile_basis, row_curvature_edges, sky_profile
 from objcam.solvers.sources import fit_residual
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
@@ -139,8 +139,10 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             rec.update({"ss_profile_fitted": ss_fit, "ss_excess": excess, "ss_allowed": allow, "taken": bool(keep),
                         "fitted_rise_over_spread": float((ss_fit - rec["ss_map"]) / max(rec["ss_spread"], 1e-300))})
         if keep:
+            # (step 3b tested the model at the map's own prior; its rows' levels are estimated as one smooth profile)
             X, kkt, obj, more, edge_info, rejected = solve_known_edges(tr, grid, d.use, d.y, *weights, params,
-                                                                       weak, sigma_abs, basis=basis)
+                                                                       weak, sigma_abs, basis=basis,
+                                                                       sky_rows=got.candidate & inside)
             iters += more
             if "sources" in first:
                 edge_info["sources"] = first["sources"]
@@ -329,12 +331,13 @@ def known_solution(tr, grid: EnvGrid, d: TargetData, X: np.ndarray, params: Solv
 
 def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: float, lr: float,
                       params: SolveParams, weak: np.ndarray | None = None, sigma_abs: float | None = None,
-                      basis: sp.spmatrix | None = None):
+                      basis: sp.spmatrix | None = None, sky_rows: np.ndarray | None = None):
     """Known albedo, edge-preserving prior (objcam.solvers.edges): X (N, 3), KKT, objective, steps, info and the
     (M,) bool rows of A dropped as outliers (None when none were; params.outliers, objcam.solvers.outliers, with
     ``sigma_abs`` the stated noise of one fitted value, None when unknown). ``basis``: the envmap basis (N, N')
     to solve on instead of :func:`known_basis`'s (objcam.solvers.skyprofile.profile_basis; not with a
-    supersampled A)."""
+    supersampled A). ``sky_rows``: (N,) bool, the texels ``basis`` gives one unknown per row (the profile's sky):
+    the prior adds the rows' second differences (objcam.solvers.skyprofile.row_curvature_edges)."""
     grams_all = tr.gram()
     C = tr.A.shape[0]
     grams, rhs, chans = [], [], []
@@ -354,6 +357,8 @@ def solve_known_edges(tr, grid: EnvGrid, use: np.ndarray, y: np.ndarray, ls: flo
     yy = np.einsum("ij,ij->j", Y, Y)
     basis = known_basis(tr, params, weak=weak) if basis is None else basis
     D = solved_edges(D, basis)
+    if sky_rows is not None:
+        D = row_curvature_edges(D, sky_rows, tr.texel_index, grid)
     refine_info = None
     if tr.output_height != tr.env_height:
         # supersampled A (objcam.solvers.refine): a pilot quadratic solve on the output texels says where the
@@ -448,9 +453,9 @@ def _robust_runs(one, weights: list, tr, use: np.ndarray, Y: np.ndarray, chans: 
     run's Q may be alive during the second downdate, one N' x N' array more at the stage's peak than when the
     rounds waited for each other.
 
-    ``one(weight, steps, (grams, rhs, yy), start=, warm=, keep=, continued=)`` runs solve_edges; ``data`` holds the full grams,
-    rhs and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,) bool or None,
-    record)."""
+    ``one(weight, steps, (grams, rhs, yy), start=, warm=, keep=, continued=)`` runs solve_edges; ``data`` holds
+    the full grams, rhs and yy, on the basis ``merged_on`` when given (N x N' 0/1). Returns (runs, rejected (M,)
+    bool or None, record)."""
     from concurrent.futures import Future
 
     k0 = min(OUTLIER_AFTER_STEPS, params.edge_steps)
