@@ -108,9 +108,10 @@ class SolveParams(BaseModel):
         "same pixels misfits by at most that spread, or by the map's own misfit beyond the noise where larger, more "
         "than the map, and by at most the spread less), the envmap is solved again on that model, "
         "one unknown per row's sky texels (objcam.solvers.skyprofile: the edge prior draws azimuthal patches and dark "
-        "rings into a dim sky that the photo barely sees beside a lamp or the sun), and no source or rim left darker "
-        "than its row's sky; 'off': the map as solved. "
-        "Measured: bench/results.md, issues 22 and 28, sessions 29, 31, 33 and 36")
+        "rings into a dim sky that the photo barely sees beside a lamp or the sun), the rows' levels with the "
+        "curvature of their profile in elevation added to the prior, and no source or rim left darker than its "
+        "row's sky; 'off': the map as solved. "
+        "Measured: bench/results.md, issues 22 and 28, sessions 29, 31, 33, 36 and 37")
     noise_fit: Literal["auto", "off"] = Field(
         "auto", description="known albedo, prior=edges, ls from the noise: 'auto': when the edge solve's residual is "
         "significantly below the stated (or estimated) noise (chi-squared per value under 1 - unknowns per channel / "
