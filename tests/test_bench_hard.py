@@ -270,3 +270,17 @@ def test_render_noise_is_the_median_pixels_not_the_fireflies():
     got = median_pixel_noise(img, half)
     assert got == pytest.approx(0.01, rel=0.05)
     assert float(np.std(half)) > 5 * got  # the v3 measure
+
+
+def test_held_out_rotations_keep_the_design_and_turn_every_lighting():
+    """`--rotations` (a held-out check of a rule chosen on the suite): the same lightings on the same geometries,
+    each at an angle the suite never used; a count other than the design's is refused."""
+    from bench.hard.design import ROTATIONS, cases
+
+    suite, held = cases(), cases(rotations=(60.0, 200.0, 310.0))
+    assert len(held) == len(suite)
+    assert all(a.light == b.light and a.geometry == b.geometry for a, b in zip(suite, held))
+    assert {b.rotation_deg for b in held} == {60.0, 200.0, 310.0}
+    assert not {b.rotation_deg for b in held} & set(ROTATIONS)
+    with pytest.raises(ValueError, match="one per geometry slot"):
+        cases(rotations=(60.0, 200.0))

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from bench.hard.capture import cached_render, camera_for, log, write_capture
-from bench.hard.design import NOISES, cases
+from bench.hard.design import NOISES, ROTATIONS, cases
 from bench.hard.objects import make_object, write_ply
 from bench.hard.report import markdown
 from bench.hard.score import target_row
@@ -140,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel (default 2048; quick 256)")
     ap.add_argument("--max-depth", type=int, default=4, help="path length (>= 3: interreflections)")
     ap.add_argument("--only", default="", help="comma-separated lighting names (development)")
+    ap.add_argument("--rotations", default="", help="three comma-separated angles in degrees instead of the "
+                    "design's 0,137,251: a held-out check (e.g. 60,200,310; use its own --out)")
     ap.add_argument("--write", action="store_true", help="write the block and the raw rows")
     ap.add_argument("--from-rows", type=Path, default=None,
                     help="regenerate the block from a rows JSON this script wrote (bench/hard_rows.json); no run")
@@ -155,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OBJCAM_QUIET", "1")
     size = args.size or (64 if args.quick else 128)
     spp = args.spp or (256 if args.quick else 2048)
-    todo = [c for c in cases(args.quick) if not args.only or c.light.name in args.only.split(",")]
+    rotations = tuple(float(a) for a in args.rotations.split(",")) if args.rotations else ROTATIONS
+    todo = [c for c in cases(args.quick, rotations) if not args.only or c.light.name in args.only.split(",")]
     groups: dict = {}
     for c in todo:
         groups.setdefault(c.geometry, []).append(c)

@@ -63,11 +63,15 @@ class Case:
         return f"{self.name}_n{100 * noise:g}"
 
 
-def cases(quick: bool = False) -> list[Case]:
-    """The suite's renders in the design above (``quick``: the development subset)."""
+def cases(quick: bool = False, rotations: tuple[float, ...] = ROTATIONS) -> list[Case]:
+    """The suite's renders in the design above (``quick``: the development subset). ``rotations``: three others
+    than the design's (a held-out check of a rule chosen on the suite: the same lightings, objects, cameras and
+    albedos, each lighting turned where the suite never had it)."""
+    if len(rotations) != len(ROTATIONS):
+        raise ValueError(f"rotations: {len(ROTATIONS)} angles (one per geometry slot), got {len(rotations)}")
     out = []
     for li, light in enumerate(lightings()):
-        for k, rot in enumerate(ROTATIONS):
+        for k, rot in enumerate(rotations):
             if quick and (light.name not in QUICK or k > 0):
                 continue
             a_obj, a_sup = ALBEDOS[(li + k) % 2]

@@ -44,7 +44,14 @@ from objcam.solvers.plan.rules import (
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
 from objcam.solvers.plan.verdict import chi2_per_value, dark_sky_area
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
-from objcam.solvers.skyprofile import floor_step, misfit_allowance, profile_basis, row_curvature_edges, sky_profile
+from objcam.solvers.skyprofile import (
+    floor_step,
+    misfit_allowance,
+    profile_basis,
+    profile_fit_kept,
+    row_curvature_edges,
+    sky_profile,
+)
 from objcam.solvers.sources import fit_residual
 from objcam.threads import blas_threads, parallel_map, single_blas_thread
 
@@ -135,7 +142,7 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
             xp = solve_known_edges(tr, grid, fitted, d.y, *weights, plain, weak, sigma_abs, basis=basis)[0]
             ss_fit = fit_residual(tr.A, fitted, d.y[fitted], xp)[1]
             allow, excess = misfit_allowance(rec["ss_map"], rec["fitted_values"], sigma_abs)
-            keep = -rec["ss_spread"] <= ss_fit - rec["ss_map"] <= allow
+            keep = profile_fit_kept(ss_fit - rec["ss_map"], rec["ss_spread"], allow, rec["blobs"])
             rec.update({"ss_profile_fitted": ss_fit, "ss_excess": excess, "ss_allowed": allow, "taken": bool(keep),
                         "fitted_rise_over_spread": float((ss_fit - rec["ss_map"]) / max(rec["ss_spread"], 1e-300))})
         if keep:
