@@ -16,7 +16,8 @@ elevation. This step asks the data, after the solve, whether the detail is their
 3b. where the row means fail it, the profile model's own fit is tested (objcam.solvers.plan.known): the envmap
    solved on the profile model with the same prior on the same pixels (plain least squares, no outlier rounds),
    kept when its sum of squares lies above the solved map's by at most :func:`misfit_allowance` (one spread, or
-   the map's own misfit beyond the noise where that is larger) and below it by at most one spread. The row means
+   the map's own misfit beyond the noise where that is larger) and, unless the map's light is one bright blob,
+   below it by at most one spread. The row means
    of a map whose patches carried part of a lamp's shadows misfit by more than the model does; the model's best
    member is the fair test. Where the solved map itself misfits the photo beyond its noise (model error: a lamp
    smaller than a texel, a light object's shading; a residual the noise cannot account for), a profile that misfits by
@@ -191,8 +192,7 @@ def row_curvature_edges(D: sp.spmatrix, sky: np.ndarray, texel_index: np.ndarray
     up, mid, down = at[:-2], at[1:-1], at[2:]
     ok = (up >= 0) & (mid >= 0) & (down >= 0)
     k = int(ok.sum())
-    theta = np.pi * (np.arange(1, grid.height - 1) + 0.5) / grid.height
-    w = np.broadcast_to(np.sqrt(np.sin(theta))[:, None], ok.shape)[ok]
+    w = np.sqrt(np.sin(grid.centres()[0][1:-1]))[ok]  # the middle texel's polar angle
     vals = (w[:, None] * np.array([1.0, -2.0, 1.0])).ravel()
     cols = np.stack([up[ok], mid[ok], down[ok]], axis=1).ravel()
     C2 = sp.csr_matrix((vals, (np.repeat(np.arange(k), 3), cols)), shape=(k, D.shape[1]))
