@@ -49,8 +49,13 @@ def _solved(rows, noise=None):
 SSIM_BLIND = 0.99
 
 
+def _baseline_ssim(r: dict, name: str) -> float:
+    """The SSIM of the baseline ``name`` (constant, row_mean) in row ``r``; 0 where it was not scored."""
+    return (r.get("baselines") or {}).get(name, {}).get("ssim", 0.0)
+
+
 def _ssim_blind(r: dict) -> bool:
-    return (r.get("baselines") or {}).get("constant", {}).get("ssim", 0.0) >= SSIM_BLIND
+    return _baseline_ssim(r, "constant") >= SSIM_BLIND
 
 
 #: a target whose row-mean map scores SSIM 1 to this tolerance: the tonemapped truth is the tonemap's white over the
@@ -60,7 +65,7 @@ ROW_MEAN_PERFECT = 1e-9
 
 
 def _row_mean_perfect(r: dict) -> bool:
-    return (r.get("baselines") or {}).get("row_mean", {}).get("ssim", 0.0) >= 1.0 - ROW_MEAN_PERFECT
+    return _baseline_ssim(r, "row_mean") >= 1.0 - ROW_MEAN_PERFECT
 
 
 def _band_ok(r, lo, hi) -> bool:
