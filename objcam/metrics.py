@@ -104,7 +104,11 @@ def tonemap_scale(truth: np.ndarray, mask: np.ndarray | None = None, percentile:
     return s if s > 0 else 1.0
 
 
-def tonemap(env: np.ndarray, scale: float, gamma: float = 2.2) -> np.ndarray:
+#: the display gamma of :func:`tonemap` (and so of the tonemapped metrics)
+TONEMAP_GAMMA = 2.2
+
+
+def tonemap(env: np.ndarray, scale: float, gamma: float = TONEMAP_GAMMA) -> np.ndarray:
     """``clip(env / scale, 0, 1) ** (1 / gamma)``."""
     return np.clip(np.asarray(env, dtype=np.float64) / scale, 0.0, 1.0) ** (1.0 / gamma)
 

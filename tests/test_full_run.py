@@ -114,7 +114,7 @@ def known(run, tmp_path_factory):
 
 
 # The known-albedo bounds, between the default's measured values and the broken answers' below
-SSIM_MIN = 0.56  # measured 0.599 (the truth's row-mean map 0.490)
+SSIM_MIN = 0.52  # measured 0.543 (0.562 at edge_tone 0.3; the truth's row-mean map 0.505)
 SUN_DEG = 45.0  # two 22.5-degree texels; measured 21.8
 
 

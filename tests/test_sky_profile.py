@@ -138,7 +138,8 @@ def test_the_known_solve_takes_the_profile_and_solves_on_it():
 def test_the_profile_is_tested_on_its_own_fit_not_on_the_maps_row_means():
     """A lamp spread over three texels near the horizon at 0.5% noise: the solved map's row means misfit by six
     spreads (the patches carried part of the lamp's shadows), the profile model fitted on the same pixels by the same
-    prior fits within one (measured 6.08 -> -0.88), so the profile is taken and solved; its map is closer to the
+    prior fits no worse than one spread above (measured 6.08 -> -0.88 at edge_tone 0.3, 6.4 -> -1.69 at the
+    tonemap's 0.545: better than the map), so the profile is taken and solved; its map is closer to the
     truth (tonemapped SSIM 0.914 -> 0.951). Broken: testing only the row means (the step before session 31) or
     sky_profile=off keeps the patches. At the ridge the step was measured with (lr 1e-4; the noise's ridge, 2.5e-5
     here, leaves the map's row means within a spread, so step 3 takes the profile before 3b is asked)."""
@@ -146,7 +147,7 @@ def test_the_profile_is_tested_on_its_own_fit_not_on_the_maps_row_means():
     truth, keep, (on, off) = _lamp_solves(grid, {(7, 3): 120.0, (7, 4): 80.0, (8, 3): 40.0}, 0.005, 1, lr=1e-4)
     rec = on.info["edges"]["sky_profile"]
     assert rec["rise_over_spread"] > 3.0  # the row means alone: not taken
-    assert abs(rec["fitted_rise_over_spread"]) <= 1.0 and rec["taken"] and "resolved" in rec
+    assert rec["fitted_rise_over_spread"] <= 1.0 and rec["taken"] and "resolved" in rec
     assert on.profile is not None and on.profile.sum() > len(keep) // 2
     s_on, s_off = _tm_ssim_env(on.envmap, truth, keep), _tm_ssim_env(off.envmap, truth, keep)
     assert s_on > s_off + 0.02, (s_off, s_on)

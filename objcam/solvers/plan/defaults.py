@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from objcam.metrics import TONEMAP_GAMMA
+
 #: Envmap basis (objcam.solvers.basis), the largest group per row in equator-texel solid angles. Measured on the
 #: bench (bench/results.md, session 9): a known albedo resolves the polar texels' texture (forest SSIM 0.777 with
 #: one unknown per texel, 0.775 at 1, 0.765 at sqrt 2; courtyard 0.787 / 0.785 / 0.786), so it merges only what
@@ -38,11 +40,16 @@ EDGE_LS_PER_SIGMA = 1.5
 #: aside), tonemapped RMSE 0.98x; at 2% unchanged by construction (a fixed lower ridge there: 7 / 9, RMSE 1.04x);
 #: the core bench's four HDRIs at 0.1% all better (forest 0.768 -> 0.775).
 LR_SIGMA_REF = 0.02
-#: Known albedo, prior=edges: tone exponent, its floor and the Huber threshold. Measured on the bench's four HDRIs
-#: (bench/results.md, objcam.solvers.edges): with ls 1.5 sigma against no tone weighting, eps 0.005 and
-#: 300 sigma^2, SSIM courtyard 0.70 -> 0.79, sunrise 0.65 -> 0.74, forest 0.79 -> 0.78, city 0.86 -> 0.83, and
-#: relative RMSE better on three of the four (city 1.50 -> 1.04, sunrise 4.9 -> 3.7).
-EDGE_TONE = 0.3
+#: Known albedo, prior=edges: tone exponent, its floor and the Huber threshold. The tone weights make the prior
+#: close to the Huber of the differences of x^(1 - p) (objcam.solvers.edges); the rule p = 1 - 1 / gamma makes
+#: that the tonemap's own power (objcam.metrics.tonemap, gamma 2.2: p = 0.545). It is also past p = 1/2, where the
+#: prior stops rewarding a compact source of energy E for spreading over a texels (its cost goes as
+#: E^(1-p) a^(p-1/2): at the former 0.3 a lamp spread over four texels cost 0.76 of itself in one, so the solve
+#: smeared overhead lamps and low suns). Measured against 0.3 (bench/results.md, issues 22 and 28, session 39): hard
+#: suite 19 targets better / 7 worse by > 0.02 SSIM, beats the row-mean oracle 66 -> 71 of 96, brightest source
+#: within a texel 81 -> 83 of 88; held-out suite 19 / 2, 53 -> 58 of 78; the core bench's four HDRIs forest 0.773
+#: -> 0.777, courtyard 0.873 -> 0.881, city 0.889 -> 0.881, sunrise 0.867 -> 0.878.
+EDGE_TONE = 1.0 - 1.0 / TONEMAP_GAMMA
 EDGE_TONE_FLOOR = 0.05
 EDGE_EPS_KNOWN = 0.001
 #: Known albedo, prior=edges, grey A: the chroma's smoothness relative to the luminance's (objcam.solvers.chroma).
