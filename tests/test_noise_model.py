@@ -45,6 +45,28 @@ def test_brightness_bins():
     assert not len(np.array_split(np.argsort(p), 24)[0]) == 5000
 
 
+def test_isotonic_increasing_is_scipys_weighted_isotonic_regression():
+    """Pool adjacent violators against scipy.optimize.isotonic_regression (the brightness bins' pooling, kept out of
+    the solve so that its first target does not import scipy.optimize) on random sequences with ties and runs."""
+    from scipy.optimize import isotonic_regression
+
+    from objcam.solvers.outliers import isotonic_increasing
+
+    rng = np.random.default_rng(1)
+    for k in (1, 2, 3, 7, 24, 200):
+        for _ in range(20):
+            v = np.round(rng.normal(size=k), 1) + np.linspace(0, rng.uniform(-2, 2), k)
+            w = rng.uniform(0.1, 5.0, k)
+            got = isotonic_increasing(v, w)
+            assert np.allclose(got, isotonic_regression(v, weights=w).x, rtol=1e-12, atol=1e-12), (v, w)
+            assert np.all(np.diff(got) >= 0)
+    # a test of the test: unweighted pooling is not the weighted fit
+    v, w = np.array([3.0, 1.0]), np.array([1.0, 3.0])
+    assert np.allclose(isotonic_increasing(v, w), 1.5) and not np.allclose(isotonic_increasing(v, np.ones(2)), 1.5)
+    with pytest.raises(ValueError):
+        isotonic_increasing(v, np.array([1.0, 0.0]))
+
+
 def test_brightness_weights_follow_the_misfit():
     rng = np.random.default_rng(0)
     lum = np.concatenate([np.full(3000, 1.0), np.full(1000, 4.0)])
