@@ -46,9 +46,10 @@ LR_SIGMA_REF = 0.02
 #: prior stops rewarding a compact source of energy E for spreading over a texels (its cost goes as
 #: E^(1-p) a^(p-1/2): at the former 0.3 a lamp spread over four texels cost 0.76 of itself in one, so the solve
 #: smeared overhead lamps and low suns). Measured against 0.3 (bench/results.md, issues 22 and 28, session 39): hard
-#: suite 19 targets better / 7 worse by > 0.02 SSIM, beats the row-mean oracle 66 -> 71 of 96, brightest source
-#: within a texel 81 -> 83 of 88; held-out suite 19 / 2, 53 -> 58 of 78; the core bench's four HDRIs forest 0.773
-#: -> 0.777, courtyard 0.873 -> 0.881, city 0.889 -> 0.881, sunrise 0.867 -> 0.878.
+#: suite (rerun, every A rebuilt) 21 targets better / 11 worse by > 0.02 SSIM, beats the row-mean oracle 66 -> 70
+#: of 96, brightest source within a texel 81 -> 82 of 88; held-out suite (re-solved) 19 / 2, 53 -> 58 of 78; the
+#: core bench's four HDRIs forest 0.773 -> 0.777, courtyard 0.872 -> 0.880, city 0.889 -> 0.881, sunrise 0.867 ->
+#: 0.878.
 EDGE_TONE = 1.0 - 1.0 / TONEMAP_GAMMA
 EDGE_TONE_FLOOR = 0.05
 EDGE_EPS_KNOWN = 0.001
