@@ -167,17 +167,22 @@ def test_auto_keeps_box_texels_where_an_albedo_is_unknown(tmp_path):
 
 def test_pick_keeps_box_texels_unless_a_candidate_fits_better_than_the_chi2_spread():
     """A candidate replaces box texels only where its chi2 per value is lower by more than the chi-squared's spread
-    (sqrt(2 / n) x box's: 0.0063 x 1.2 for n = 50,000), and the lowest chi2 among those wins; the joint pick
-    sums the fits."""
+    (sqrt(2 / n) x box's: 0.0063 x 1.2 for n = 50,000), and the lowest chi2 among those wins, except that a point
+    source that beats box texels is kept over the compact kernel's better fit (objcam.transport.kernel: the mix of
+    narrow columns splits the source); the joint pick sums the fits."""
     from objcam.transport.kernel import pick
 
     n = 50_000
     spread = 1.2 * np.sqrt(2.0 / n)  # 0.0076
     res = {"box": {"a": {"chi2": 1.2, "values": n}, "b": {"chi2": 1.2, "values": n}},
            "point": {"a": {"chi2": 1.2 - 0.5 * spread, "values": n}, "b": {"chi2": 1.2 - 2 * spread, "values": n}},
-           "compact": {"b": {"chi2": 1.2 - 3 * spread, "values": n}}}
-    assert pick(res, ["a", "b"], joint=False) == {"a": "box", "b": "compact"}
-    del res["compact"]
+           "compact": {"a": {"chi2": 1.2 - 3 * spread, "values": n}, "b": {"chi2": 1.2 - 3 * spread, "values": n}},
+           "narrow": {"b": {"chi2": 1.2 - 4 * spread, "values": n}}}
+    # a: point within the spread, so the compact kernel's fit decides; b: point beats box, narrow beats it
+    assert pick(res, ["a", "b"], joint=False) == {"a": "compact", "b": "narrow"}
+    res["narrow"]["b"]["chi2"] = 1.2 - 1.5 * spread
+    assert pick(res, ["a", "b"], joint=False) == {"a": "compact", "b": "point"}
+    del res["compact"], res["narrow"]
     assert pick(res, ["a", "b"], joint=False) == {"a": "box", "b": "point"}
     # joint: the summed misfit drops by 1.77 spreads of the summed box fit's (sqrt(2 / 2n) x 2.4 n), then by 0.99
     assert pick(res, ["a", "b"], joint=True) == {"a": "point", "b": "point"}
