@@ -182,3 +182,30 @@ def test_a_bright_patch_the_box_texels_explain_keeps_them(tmp_path):
     assert "point_sources" in m and rec["chi2_point"] > 1.1 * rec["chi2_box"]  # measured: 1.29 against 1.01
     assert rec["kernel"] != "point"
     assert not any(p.name.startswith("cam0p") for p in (tmp_path / "auto").iterdir())
+
+
+def test_a_texel_holding_a_placed_source_is_never_weak():
+    """rules.weak_texels drops texels whose column norm is under a tenth of the median above the horizon; a texel
+    whose column is a point source the photo placed (a lamp 1.8 deg up: 0.088 of the median on the hard suite)
+    must stay, or the solve loses the lamp. A source at the horizon (elevation 0) or a dim texel without a source
+    is still weak."""
+    from types import SimpleNamespace
+
+    from objcam.envmap import EnvGrid
+    from objcam.solvers.plan.rules import weak_texels
+
+    grid = EnvGrid(4)
+    dirs = grid.directions().reshape(-1, 3)
+    norms = np.ones(grid.n_texels)
+    low = [int(12), int(13), int(14)]  # row 1 (the lowest above the horizon at 4 rows): three dim columns
+    norms[low] = 0.088
+    norms[dirs[:, 2] < 0] = 1e-3
+    gram = np.diag(norms ** 2)[None]
+    tr = SimpleNamespace(gram=lambda: gram, directions=dirs, texel_index=np.arange(grid.n_texels),
+                         attrs={"point_sources": [{"texel": 12, "elevation_deg": 1.8},
+                                                  {"texel": 28, "elevation_deg": 0.0}]})
+    weak = weak_texels(tr, 0.1)
+    assert not weak[12] and weak[13] and weak[14] and weak[28]
+    assert weak[dirs[:, 2] < 0].all() and not weak[dirs[:, 2] > 0][norms[dirs[:, 2] > 0] > 0.5].any()
+    tr.attrs = {}
+    assert weak_texels(tr, 0.1)[12]

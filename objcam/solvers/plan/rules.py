@@ -149,6 +149,14 @@ def relative_column_norms(gram_diag: np.ndarray, directions: np.ndarray) -> np.n
 def weak_texels(tr, fraction: float) -> np.ndarray:
     """(N,) bool: A's texels whose relative column norm (:func:`relative_column_norms` of the channel-mean
     A^T A) is under ``fraction``: directions the photo barely sees (a sliver below the horizon past the support's
-    edge sees ~1e-4-0.05 of a typical texel on the hard suite; the lowest row above it 0.14-1.2)."""
+    edge sees ~1e-4-0.05 of a typical texel on the hard suite; the lowest row above it 0.14-1.2). A texel above
+    the horizon holding a source the transport placed there by the photo (objcam.transport.points: its column is
+    the point's light, as dim as the source is low) is seen by construction and never weak (a lamp 1.8 deg up
+    came to 0.088 and was dropped)."""
     grams = tr.gram()  # (C, N, N): only the diagonals are needed
-    return relative_column_norms(np.einsum("cii->i", grams) / grams.shape[0], tr.directions) < fraction
+    weak = relative_column_norms(np.einsum("cii->i", grams) / grams.shape[0], tr.directions) < fraction
+    placed = [s["texel"] for s in (getattr(tr, "attrs", None) or {}).get("point_sources") or []
+              if s.get("elevation_deg", 0.0) > 0.0]
+    if placed:
+        weak &= ~np.isin(np.asarray(tr.texel_index), placed)
+    return weak
