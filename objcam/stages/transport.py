@@ -51,8 +51,10 @@ class Params(BaseModel):
     texel_kernel: Annotated[float, Field(gt=0, le=1)] | Literal["auto", "fit"] = Field(
         "auto", description="direct: the shadow rays aim into this central fraction of each texel per side (1: box "
         "texels). 'auto': box texels; each target solved on them, then on A with narrow (0.25) columns at the "
-        "solve's compact bright blobs and, where the solve left black sky, on a whole narrow A, keeping the lowest "
-        "chi2 (up to 64 rows, known albedo); 'fit': the whole narrow A for every target too (objcam.transport.kernel)")
+        "solve's compact bright blobs, on A with point sources placed inside their texels by the photo and, where "
+        "the solve left black sky, on a whole narrow A, keeping the lowest chi2 (the point sources over the narrow "
+        "blob columns where both beat box texels; up to 64 rows, known albedo); 'fit': the whole narrow A for "
+        "every target too (objcam.transport.kernel)")
     refine: bool = Field(True, description="direct: pairs at shadow boundaries get one ray per sub-pixel sample")
     downsample: int | Literal["auto"] = Field("auto", description="pool f x f pixel blocks (pool the target with "
                                               "pool_target); 'auto': the smallest f that leaves at most max_pixels "
