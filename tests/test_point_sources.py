@@ -197,7 +197,7 @@ def test_a_texel_holding_a_placed_source_is_never_weak():
     grid = EnvGrid(4)
     dirs = grid.directions().reshape(-1, 3)
     norms = np.ones(grid.n_texels)
-    low = [int(12), int(13), int(14)]  # row 1 (the lowest above the horizon at 4 rows): three dim columns
+    low = [12, 13, 14]  # row 1 (the lowest above the horizon at 4 rows): three dim columns
     norms[low] = 0.088
     norms[dirs[:, 2] < 0] = 1e-3
     gram = np.diag(norms ** 2)[None]

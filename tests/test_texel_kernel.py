@@ -106,8 +106,9 @@ def test_fit_gives_each_target_the_kernel_its_fit_prefers(tmp_path, monkeypatch)
     index = json.loads((tmp_path / "fit" / "index.json").read_text())["targets"]
     assert index["t1"] == "cam0k" and np.array_equal(load_transport(tmp_path / "fit", "t1").A, tn.A)
     # the compact A, taken by a pick told to: box columns, but narrow ones at the lamp's blob, its Gram updated
-    monkeypatch.setattr("objcam.transport.kernel.pick", lambda res, names, joint: {"t0": "compact", "t1": "narrow"})
-    _run(folder, tmp_path / "fitc", model="direct", texel_kernel="fit")
+    with monkeypatch.context() as told:
+        told.setattr("objcam.transport.kernel.pick", lambda res, names, joint: {"t0": "compact", "t1": "narrow"})
+        _run(folder, tmp_path / "fitc", model="direct", texel_kernel="fit")
     index = json.loads((tmp_path / "fitc" / "index.json").read_text())["targets"]
     assert index["t0"] == "cam0c"
     tc = load_transport(tmp_path / "fitc", "t0")
@@ -117,8 +118,6 @@ def test_fit_gives_each_target_the_kernel_its_fit_prefers(tmp_path, monkeypatch)
     assert np.array_equal(tc.A[:, :, ~at], tb.A[:, :, ~at])
     G = tc.gram()
     assert np.allclose(G[0], tc.A[0].astype(np.float64).T @ tc.A[0].astype(np.float64), rtol=1e-6, atol=1e-9)
-    monkeypatch.undo()
-    monkeypatch.setattr("objcam.solvers.plan.rules.noise_lr", lambda sigma: DEFAULT_LR_REL)
     # auto (the default): only the lamp's box solve leaves black sky; the sky stays on box texels
     ma = _run(folder, tmp_path / "auto", model="direct")
     rec = ma["texel_kernel_auto"]["targets"]
