@@ -108,7 +108,9 @@ def isotonic_increasing(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
             m = (means.pop() * s0 + m * s) / (s0 + s)
             s += s0
             n += counts.pop()
-        means.append(m), sums.append(s), counts.append(n)
+        means.append(m)
+        sums.append(s)
+        counts.append(n)
     return np.repeat(means, counts)
 
 
