@@ -6,6 +6,7 @@ The scene description is what the transport stage consumes, whether it came from
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,11 +87,14 @@ def load_mesh(path: str | Path) -> MeshData:
     if problem:  # the loader would drop these silently, or report them as an unreadable file
         raise InputError(f"mesh is malformed: {problem}", path, "repair or re-export the mesh")
     ms = pymeshlab.MeshSet()
+    cwd = os.getcwd()
     try:
         ms.load_new_mesh(str(path))
     except Exception as e:  # pymeshlab raises PyMeshLabException with multi-line text
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise InputError(f"mesh does not load ({first})", path, "export it as PLY or OBJ") from None
+    finally:  # a failed load leaves the process in the mesh's folder (pymeshlab 2023.12)
+        os.chdir(cwd)
     m = ms.current_mesh()
     if declared and (m.vertex_number() < declared[0] or m.face_number() < declared[1]):
         raise InputError(f"mesh declares {declared[0]} vertices and {declared[1]} faces but only "

@@ -152,6 +152,7 @@ def test_mask_geometry():
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):
+    cwd = Path.cwd()
     assert main(["design", str(tmp_path / "o"), "--mesh", str(tmp_path / "nope.ply")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "nope.ply" in err and "--mesh" in err
@@ -162,3 +163,5 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert main(["design", str(tmp_path / "o"), "--mesh", str(tmp_path / "bad.ply")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "bad.ply" in err and "--mesh" in err
+    # pymeshlab leaves a failed load in the mesh's folder; the process must come back where it was
+    assert Path.cwd() == cwd

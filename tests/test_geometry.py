@@ -26,7 +26,7 @@ HEIGHT = 0.08  # ViewRingParams' default object height, metres
 
 @pytest.fixture(scope="session")
 def photo_capture(tmp_path_factory):
-    return write_inputs(tmp_path_factory.mktemp("geometry_capture"), ViewRingParams(**SMALL))
+    return write_inputs(tmp_path_factory.mktemp("session_geometry_capture"), ViewRingParams(**SMALL))
 
 
 @pytest.fixture(scope="session")
@@ -34,7 +34,7 @@ def geometry_run(photo_capture, tmp_path_factory):
     """(out folder, metrics) of the geometry stage on the shared capture."""
     from objcam.stages import geometry
 
-    out = tmp_path_factory.mktemp("geometry_out")
+    out = tmp_path_factory.mktemp("session_geometry_out")
     res = geometry.run(StageInputs(capture=photo_capture.capture, out=out, quiet=True,
                                    upstream={"ingest": photo_capture.ingest, "sfm": photo_capture.sfm}),
                        geometry.Params())

@@ -25,7 +25,7 @@ SMALL = dict(n_views=11, width=320, height=240, spp=16, max_depth=2, distance=0.
 @pytest.fixture(scope="session")
 def small_capture(tmp_path_factory):
     """(views folder, {stem: true Camera}, params)."""
-    root = tmp_path_factory.mktemp("sfm_capture")
+    root = tmp_path_factory.mktemp("session_sfm_capture")
     params = ViewRingParams(**SMALL)
     res = render_views(root / "views", params, camera_dir=root / "truth")
     return root / "views", {p.stem: cam for p, cam in res}, params
@@ -40,7 +40,7 @@ def frontend_run(small_capture, tmp_path_factory):
     from objcam.sfm.frontend import FrontendOptions, estimate_cameras
 
     views, truth, params = small_capture
-    work = tmp_path_factory.mktemp("sfm_work")
+    work = tmp_path_factory.mktemp("session_sfm_work")
     pngs = sorted(views.glob("*.png"))
     target = work.parent / "target_t0.exr"
     png = cv2.imread(str(pngs[-1]), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0

@@ -17,7 +17,7 @@ from tests.test_geometry import geometry_run, photo_capture  # noqa: F401  (shar
 def texture_run(photo_capture, geometry_run, tmp_path_factory):  # noqa: F811
     from objcam.stages import texture
 
-    out = tmp_path_factory.mktemp("texture_out")
+    out = tmp_path_factory.mktemp("session_texture_out")
     res = texture.run(StageInputs(capture=photo_capture.capture, out=out, quiet=True,
                                   upstream={"ingest": photo_capture.ingest, "sfm": photo_capture.sfm,
                                             "geometry": geometry_run[0]}), texture.Params())
