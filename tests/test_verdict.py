@@ -65,6 +65,21 @@ def test_a_wrong_envmap_turns_red(toy):
     wrong = np.roll(truth, truth.shape[1] // 2, axis=1)  # the sun half a turn away
     v = _verdict(tr, photo, wrong, tr.predict(tr.x_from_envmap(wrong)))
     assert v["chi2"] > 20 and v["grade"] == "red"
+    assert v["residual_fraction"] > 0.05  # 0.074: the sun's shadows are a small part of a sky-lit photo
+
+
+def test_a_small_misfit_at_low_noise_is_yellow(toy):
+    """The truth at 0.98x (a model error of a fiftieth of the light) against a photo at a tenth of the toy's noise:
+    chi2 ~40, red by chi2 alone; 2% of the photo: yellow. The same at 0.9x (10%): red."""
+    tr, truth, clean, _ = toy
+    photo = clean + 0.1 * NOISE * np.median(clean[clean > 0]) * np.random.default_rng(1).normal(size=clean.shape)
+    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
+    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
+    for scale, frac, colour in ((0.98, 0.02, "yellow"), (0.9, 0.1, "red")):
+        sol = TargetSolution(truth * scale, None, clean * scale, {})
+        v = assess(SimpleNamespace(noise_sigma=0.1 * NOISE), d, sol, lr_rel=1e-4)
+        assert v["chi2"] > 20 and v["residual_fraction"] == pytest.approx(frac, rel=0.05)
+        assert v["grade"] == colour, (scale, v["reasons"])
 
 
 def test_a_black_patch_in_the_sky_turns_red(toy):
@@ -121,6 +136,11 @@ def test_grade_rules():
     g, why = grade({"chi2": 9.0, "uncertain_area": 0.1})
     assert g == "yellow" and len(why) == 1 and why[0].startswith("residual 3.0x the noise")
     assert grade({"chi2": 40.0})[0] == "red"  # 6.3x the noise
+    # ... unless the misfit is small beside the photo: significant at low noise, but a fiftieth of the light
+    g, why = grade({"chi2": 40.0, "residual_fraction": 0.02})
+    assert g == "yellow" and why[0].startswith("residual 6.3x the noise but 2.0% of the photo")
+    assert grade({"chi2": 40.0, "residual_fraction": 0.06})[0] == "red"
+    assert grade({"chi2": 9.0, "residual_fraction": 0.5})[0] == "yellow"  # a big share of noise is not a misfit
     g, why = grade({"chi2": 1.0, "uncertain_area": 0.9, "uncertain_visible_area": 0.1})
     assert g == "yellow" and why[0].startswith("90% of the sky weakly")  # dark, flat, undetermined: not red
     g, why = grade({"chi2": 1.0, "uncertain_area": 0.9, "uncertain_visible_area": 0.8, "below_horizon_energy": 0.2})

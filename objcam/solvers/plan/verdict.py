@@ -5,7 +5,10 @@ No ground truth is used: every measure comes from the photo, the model and the s
 * ``chi2``: the residual per fitted pixel value over the stated noise (``noise_sigma`` per photo pixel over the
   pooling, else estimated from the image), squared and averaged. ~1 when the model explains the photo to its
   noise; far above it, the photo holds light or geometry the model lacks (interreflections, a wrong mesh, a
-  saturated area, a hot pixel).
+  saturated area, a hot pixel). ``residual_fraction``: the same residual over the photo (root sums of squares):
+  how much of the light the model leaves unexplained. chi2 says whether a misfit is real, the fraction whether it
+  is large; red needs both (chi2 grows with the signal to noise ratio: a fiftieth of the light is chi2 ~30 at 0.5%
+  noise).
 * ``uncertain_area``: the share of the sky (solid angle above the horizon) whose texels' uncertainty exceeds
   their recovered value. Uncertainty per texel: ``sigma sqrt(diag(Q^-1))`` with ``Q = A^T A + ls D^T D + lr I``
   at the quadratic prior's noise rule (ls = LS_NOISE_FACTOR sigma^2): the posterior spread of the recovered
@@ -61,6 +64,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_EXCLUDED_YELLOW,
     VERDICT_MARGIN_YELLOW,
     VERDICT_REJECTED_YELLOW,
+    VERDICT_RESIDUAL_RED,
     VERDICT_SEEN_YELLOW,
     VERDICT_UNCERTAIN_RED,
     VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
@@ -79,6 +83,14 @@ def chi2_per_value(y: np.ndarray, fit: np.ndarray, sigma_rel: float) -> tuple[fl
 
     sigma_abs = absolute_noise(y, sigma_rel)
     return float(np.mean(((y - fit) / sigma_abs) ** 2)), sigma_abs
+
+
+def residual_fraction(y: np.ndarray, fit: np.ndarray) -> float:
+    """The share of the photo the fit leaves unexplained: ``||y - fit|| / ||y||`` over the fitted pixel values
+    (M, 3) (0: a perfect fit; 1: the fit explains nothing). Unlike chi-squared it does not grow with the signal to
+    noise ratio: a photo's model error at a thirtieth of its light is chi2 ~100 at 0.3% noise and ~1 at 3%."""
+    den = float(np.sum(np.square(y, dtype=np.float64)))
+    return float(np.sqrt(np.sum(np.square(y - fit, dtype=np.float64)) / den)) if den > 0 else 0.0
 
 
 #: Texels above which the verdict's Q is factorised in float32 on every core (objcam.analysis.inverse_diagonal):
@@ -248,7 +260,8 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
                  "pixels_excluded": float(1.0 - d.use.mean()),
                  "pixels_rejected": float(0.0 if sol.rejected is None else sol.rejected.sum() / max(d.use.sum(), 1)),
                  "below_horizon_energy": float(energy[~up].sum() / total),
-                 "dark_sky_area": dark_sky_area(lum, omega, up & solved)}
+                 "dark_sky_area": dark_sky_area(lum, omega, up & solved),
+                 "residual_fraction": residual_fraction(y[use], fit)}
     grams, nc = tr.gram(), tr.A.shape[0]  # (C, N, N), memory-mapped: read in bands, never copied whole
     dropped = [] if use.all() else [np.asarray(tr.A[c][~use], np.float64) for c in range(nc)]
     diag = data_gram_diagonal(grams, dropped)
@@ -308,9 +321,14 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     if unconstrained:
         red.append("one illumination and every albedo unknown: the priors, not the photo, drew the envmap")
     chi2 = m.get("chi2")
-    if chi2 is not None and chi2 > VERDICT_CHI2_RED:
+    frac = m.get("residual_fraction")
+    small = frac is not None and frac <= VERDICT_RESIDUAL_RED
+    if chi2 is not None and chi2 > VERDICT_CHI2_RED and not small:
         red.append(f"the model leaves a residual {np.sqrt(chi2):.1f}x the noise: the photo holds light, geometry or "
                    "outliers it lacks (interreflections, mesh, saturation, fireflies; see residual.exr)")
+    elif chi2 is not None and chi2 > VERDICT_CHI2_RED:
+        yellow.append(f"residual {np.sqrt(chi2):.1f}x the noise but {frac:.1%} of the photo: a small misfit the "
+                      "model lacks, e.g. the sharp shadows of a light smaller than a texel (see residual.exr)")
     elif chi2 is not None and chi2 > VERDICT_CHI2_YELLOW:
         yellow.append(f"residual {np.sqrt(chi2):.1f}x the noise: the photo holds light or geometry the model lacks")
     uv, ua = m.get("uncertain_visible_area"), m.get("uncertain_area")
