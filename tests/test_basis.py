@@ -19,6 +19,32 @@ def _upper(grid: EnvGrid) -> np.ndarray:
     return np.arange((grid.height // 2 + 1) * grid.width)
 
 
+
+def test_a_texel_kept_alone_is_its_own_unknown_and_its_group_keeps_the_rest():
+    """A point source placed in a polar texel (objcam.transport.points) would light its whole 16-texel wedge if
+    merged; kept alone, it is one unknown and the wedge's other 15 texels stay one group; groups keep the texels'
+    order and elsewhere the basis is unchanged."""
+    grid = EnvGrid(32)
+    t = _upper(grid)
+    P0 = texel_basis(grid, t, 1.0)
+    alone = np.array([5, 64 + 17])  # row 0 (16 per group), row 1 (4 per group): full-grid indices
+    P = texel_basis(grid, t, 1.0, alone=alone)
+    assert P.shape == (t.size, P0.shape[1] + 2)
+    assert np.array_equal(np.asarray(P.sum(axis=1)).ravel(), np.ones(t.size))
+    gid = np.asarray(P.argmax(axis=1)).ravel()
+    first = [int(t[gid == j].min()) for j in range(P.shape[1])]
+    assert np.all(np.diff(first) > 0), "groups ordered by their first texel"
+    for a, wedge in ((5, range(0, 16)), (64 + 17, range(64 + 16, 64 + 20))):
+        assert group_sizes(P)[gid[a]] == 1
+        rest = [i for i in wedge if i != a]
+        assert len(set(gid[rest])) == 1 and group_sizes(P)[gid[rest[0]]] == len(rest)
+    # every other group as before: the same partition of the other texels
+    others = np.setdiff1d(t, np.concatenate([np.arange(16), np.arange(80, 84)]))
+    g0 = np.asarray(P0.argmax(axis=1)).ravel()[others]
+    assert np.array_equal(np.unique(g0, return_inverse=True)[1], np.unique(gid[others], return_inverse=True)[1])
+    assert texel_basis(grid, t, 0.0, alone=alone) is None  # nothing merges: nothing to keep apart
+    assert (texel_basis(grid, t, 1.0, alone=np.array([], np.int64)) != P0).nnz == 0
+
 def test_groups_at_32x64_span_at_most_the_group_size_in_equator_texels():
     grid = EnvGrid(32)
     t = _upper(grid)

@@ -209,3 +209,28 @@ def test_a_texel_holding_a_placed_source_is_never_weak():
     assert weak[dirs[:, 2] < 0].all() and not weak[dirs[:, 2] > 0][norms[dirs[:, 2] > 0] > 0.5].any()
     tr.attrs = {}
     assert weak_texels(tr, 0.1)[12]
+
+
+def test_a_placed_source_in_a_merged_row_is_its_own_unknown():
+    """The known-albedo solve merges polar texels (16 per unknown in row 0 at 32 x 64): a point source placed in
+    one of them (a lamp 85 deg up) would light its whole 90-deg wedge, so the solve's basis keeps that texel alone;
+    without a source the wedge is one unknown."""
+    from types import SimpleNamespace
+
+    from objcam.envmap import EnvGrid
+    from objcam.solvers.basis import group_sizes
+    from objcam.solvers.plan.known import known_basis
+    from objcam.solvers.plan.params import SolveParams
+
+    grid = EnvGrid(32)
+    t = np.arange(17 * grid.width)  # the upper hemisphere and the row below
+    dirs = grid.directions().reshape(-1, 3)[t]
+    tr = SimpleNamespace(grid=grid, texel_index=t, directions=dirs, env_height=32, output_height=32,
+                         gram=lambda: np.eye(t.size)[None],
+                         attrs={"point_sources": [{"texel": 27, "elevation_deg": 85.2}]})
+    P = known_basis(tr, SolveParams())
+    gid = np.asarray(P.argmax(axis=1)).ravel()
+    assert group_sizes(P)[gid[27]] == 1 and group_sizes(P)[gid[16]] == 15  # texels 16-31: row 0's second wedge
+    tr.attrs = {}
+    P = known_basis(tr, SolveParams())
+    assert group_sizes(P)[np.asarray(P.argmax(axis=1)).ravel()[27]] == 16

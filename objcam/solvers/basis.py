@@ -38,11 +38,14 @@ def row_group_sizes(grid: EnvGrid, group: float) -> np.ndarray:
     return np.where(ok, divisors[None, :], 1).max(axis=1)
 
 
-def texel_basis(grid: EnvGrid, texel_index: np.ndarray, group: float) -> sp.csr_matrix | None:
+def texel_basis(grid: EnvGrid, texel_index: np.ndarray, group: float,
+                alone: np.ndarray | None = None) -> sp.csr_matrix | None:
     """(N, N') membership matrix P of the merged basis with group size ``group`` over the kept texels
     ``texel_index`` (full-grid indices, row-major), or None when nothing merges (``group`` < 2 sin of every
     kept row, e.g. 0: one unknown per texel). Groups hold only kept texels and never wrap around the azimuth
-    seam; their order follows the texels'."""
+    seam; their order follows the texels'. ``alone``: full-grid indices of texels kept out of their groups, each
+    its own unknown (a texel whose column is a point source placed by the photo, objcam.transport.points: merged,
+    the point would light its whole group)."""
     if not group >= 0:
         raise ValueError(f"texel group size must be >= 0, got {group!r}")
     t = np.asarray(texel_index, dtype=np.int64).ravel()
@@ -52,7 +55,11 @@ def texel_basis(grid: EnvGrid, texel_index: np.ndarray, group: float) -> sp.csr_
     k = row_group_sizes(grid, group)[r]
     if np.all(k == 1):
         return None
-    _, gid = np.unique(r * grid.width + (c // k) * k, return_inverse=True)
+    key = 2 * (r * grid.width + (c // k) * k)  # the group's first texel; a texel kept alone right after it
+    if alone is not None and len(alone):
+        own = np.isin(t, np.asarray(alone, np.int64))
+        key[own] = 2 * t[own] + 1
+    _, gid = np.unique(key, return_inverse=True)
     gid = gid.ravel()
     return sp.csr_matrix((np.ones(t.size), (np.arange(t.size), gid)), shape=(t.size, int(gid.max()) + 1))
 

@@ -176,15 +176,17 @@ def replace_direct(tr, pos: np.ndarray, delta: np.ndarray) -> Columns:
 
 
 @contextmanager
-def swapped(tr, cand: Columns):
+def swapped(tr, cand: Columns, attrs: dict | None = None):
     """The Transport ``tr`` with the candidate's columns and Gram matrix, inside: ``tr.A``'s columns are replaced
-    in place and put back on exit (so no A is copied; ``tr`` must not be used by another thread meanwhile)."""
+    in place and put back on exit (so no A is copied; ``tr`` must not be used by another thread meanwhile).
+    ``attrs``: added to the Transport's attributes, as the candidate's stored group will carry them (a point
+    candidate's ``point_sources``, which the solve's basis and weak-texel rule read)."""
     import dataclasses
 
     old = tr.A[:, :, cand.pos].copy()
     tr.A[:, :, cand.pos] = cand.cols
     try:
-        out = dataclasses.replace(tr, A=tr.A)
+        out = dataclasses.replace(tr, A=tr.A, attrs={**tr.attrs, **(attrs or {})})
         out._gram = cand.gram
         yield out
     finally:
@@ -304,7 +306,7 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
             cand, used = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
             if cand is not None:
                 points[g] = (cand, [t.name for t in ts], used)
-                with swapped(box_tr, cand) as tr_p:
+                with swapped(box_tr, cand, {"point_sources": [s.record() for s in used]}) as tr_p:
                     got = pilot(art, targets if joint else ts, tr_p, capture)
                 results.setdefault("point", {}).update(got)
         if with_src:

@@ -38,6 +38,7 @@ from objcam.solvers.plan.rules import (
     fitted_noise,
     noise_scale,
     noise_weights,
+    placed_texels,
     texel_group,
     weak_texels,
 )
@@ -286,7 +287,7 @@ def known_basis(tr, params: SolveParams, split: np.ndarray | None = None, weak: 
     (objcam.solvers.refine; None: none refined)."""
     g = texel_group(params, known=True)
     if tr.output_height == tr.env_height:
-        P = texel_basis(tr.grid, tr.texel_index, g)
+        P = texel_basis(tr.grid, tr.texel_index, g, alone=placed_texels(tr))
         if params.weak_texels == "keep":
             return P
         if weak is None:  # (N,) bool: the texels held to params.weak_texels (:func:`known_weak`)

@@ -155,8 +155,15 @@ def weak_texels(tr, fraction: float) -> np.ndarray:
     came to 0.088 and was dropped)."""
     grams = tr.gram()  # (C, N, N): only the diagonals are needed
     weak = relative_column_norms(np.einsum("cii->i", grams) / grams.shape[0], tr.directions) < fraction
-    placed = [s["texel"] for s in (getattr(tr, "attrs", None) or {}).get("point_sources") or []
-              if s.get("elevation_deg", 0.0) > 0.0]
-    if placed:
+    placed = placed_texels(tr)
+    if placed.size:
         weak &= ~np.isin(np.asarray(tr.texel_index), placed)
     return weak
+
+
+def placed_texels(tr) -> np.ndarray:
+    """Full-grid indices of the texels above the horizon whose column is a point source the transport placed
+    there by the photo (objcam.transport.points; ``tr.attrs["point_sources"]``), (k,) int64; none: empty."""
+    placed = [s["texel"] for s in (getattr(tr, "attrs", None) or {}).get("point_sources") or []
+              if s.get("elevation_deg", 0.0) > 0.0]
+    return np.asarray(placed, np.int64)
