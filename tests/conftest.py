@@ -27,5 +27,3 @@ def _remove_module_folders(request: pytest.FixtureRequest, tmp_path_factory: pyt
     for folder in base.iterdir():
         if folder.name not in before and folder.is_dir() and not folder.name.startswith("session_"):
             shutil.rmtree(folder, ignore_errors=True)
-
-

@@ -7,8 +7,8 @@ No ground truth is used: every measure comes from the photo, the model and the s
   noise; far above it, the photo holds light or geometry the model lacks (interreflections, a wrong mesh, a
   saturated area, a hot pixel). ``residual_fraction``: the same residual over the photo (root sums of squares):
   how much of the light the model leaves unexplained. chi2 says whether a misfit is real, the fraction whether it
-  is large; red needs both (chi2 grows with the signal to noise ratio: a fiftieth of the light is chi2 ~30 at 0.5%
-  noise).
+  is large; red needs both (chi2 grows as 1 + (misfit / noise)^2: the same misfit of a fiftieth of the light is
+  chi2 ~17 at 0.5% noise and ~2 at 2%).
 * ``uncertain_area``: the share of the sky (solid angle above the horizon) whose texels' uncertainty exceeds
   their recovered value. Uncertainty per texel: ``sigma sqrt(diag(Q^-1))`` with ``Q = A^T A + ls D^T D + lr I``
   at the quadratic prior's noise rule (ls = LS_NOISE_FACTOR sigma^2): the posterior spread of the recovered
@@ -87,8 +87,8 @@ def chi2_per_value(y: np.ndarray, fit: np.ndarray, sigma_rel: float) -> tuple[fl
 
 def residual_fraction(y: np.ndarray, fit: np.ndarray) -> float:
     """The share of the photo the fit leaves unexplained: ``||y - fit|| / ||y||`` over the fitted pixel values
-    (M, 3) (0: a perfect fit; 1: the fit explains nothing). Unlike chi-squared it does not grow with the signal to
-    noise ratio: a photo's model error at a thirtieth of its light is chi2 ~100 at 0.3% noise and ~1 at 3%."""
+    (M, 3) (0: a perfect fit; 1: the fit explains nothing; the noise alone gives about the relative noise). Unlike
+    chi-squared it does not grow with the signal to noise ratio."""
     den = float(np.sum(np.square(y, dtype=np.float64)))
     return float(np.sqrt(np.sum(np.square(y - fit, dtype=np.float64)) / den)) if den > 0 else 0.0
 
