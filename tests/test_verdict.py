@@ -36,11 +36,11 @@ def toy():
     return tr, truth, clean, photo
 
 
-def _verdict(tr, photo, env, prediction):
+def _verdict(tr, photo, env, prediction, noise: float = NOISE):
     y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
     d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
     sol = TargetSolution(env, None, prediction, {})
-    return assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)
+    return assess(SimpleNamespace(noise_sigma=noise), d, sol, lr_rel=1e-4)
 
 
 def test_truth_fitted_to_its_noise_is_green(toy):
@@ -73,11 +73,8 @@ def test_a_small_misfit_at_low_noise_is_yellow(toy):
     chi2 ~40, red by chi2 alone; 2% of the photo: yellow. The same at 0.9x (10%): red."""
     tr, truth, clean, _ = toy
     photo = clean + 0.1 * NOISE * np.median(clean[clean > 0]) * np.random.default_rng(1).normal(size=clean.shape)
-    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
-    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
     for scale, frac, colour in ((0.98, 0.02, "yellow"), (0.9, 0.1, "red")):
-        sol = TargetSolution(truth * scale, None, clean * scale, {})
-        v = assess(SimpleNamespace(noise_sigma=0.1 * NOISE), d, sol, lr_rel=1e-4)
+        v = _verdict(tr, photo, truth * scale, clean * scale, noise=0.1 * NOISE)
         assert v["chi2"] > 20 and v["residual_fraction"] == pytest.approx(frac, rel=0.05)
         assert v["grade"] == colour, (scale, v["reasons"])
 

@@ -296,7 +296,7 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
         with swapped(box_tr, compact) as tr_c:
             results["compact"] = pilot(art, asked, tr_c, capture)
         metrics["compact_texels"] = int(compact.pos.size)
-    points: dict[str, tuple] = {}  # group -> (Columns, targets, sources used)
+    points: dict[str, tuple] = {}  # group -> (Columns, targets, its attrs: the sources used)
     if direct is not None:
         found = point_sources(box_tr, direct, box, names)
         with_src = [t for t in targets if found[t.name]]
@@ -305,8 +305,9 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
         for g, ts in parts if with_src else []:
             cand, used = point_transport(box_tr, direct, [s for t in ts for s in found[t.name]])
             if cand is not None:
-                points[g] = (cand, [t.name for t in ts], used)
-                with swapped(box_tr, cand, {"point_sources": [s.record() for s in used]}) as tr_p:
+                placed = {"point_sources": [s.record() for s in used]}  # the group's attrs, as stored
+                points[g] = (cand, [t.name for t in ts], placed)
+                with swapped(box_tr, cand, placed) as tr_p:
                     got = pilot(art, targets if joint else ts, tr_p, capture)
                 results.setdefault("point", {}).update(got)
         if with_src:
@@ -316,11 +317,10 @@ def for_camera(art, geo, targets: list, out: Path, sub: str, settings, valids, n
     if "compact" in choice.values():
         write_columns(out / sub, out / (sub + "c"), compact.pos, compact.cols, compact.gram)
     group = {n: groups.get(c) for n, c in choice.items()}
-    for g, (cand, owners, used) in points.items():
+    for g, (cand, owners, placed) in points.items():
         took = [n for n in owners if choice[n] == "point"]
         if took:
-            write_columns(out / sub, out / g, cand.pos, cand.cols, cand.gram,
-                          {"point_sources": [s.record() for s in used]})
+            write_columns(out / sub, out / g, cand.pos, cand.cols, cand.gram, placed)
         group.update({n: g for n in took})
     mapping.update(group)
     for g in (sub, sub + "k"):

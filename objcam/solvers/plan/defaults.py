@@ -171,8 +171,9 @@ VERDICT_CHI2_RED = 20.0
 #: residual_fraction (the fit's residual over the photo, both as root sums of squares over the fitted values): a
 #: chi2 above the red line is red only where the misfit is also more than a twentieth of the photo. chi2 grows with
 #: the signal to noise ratio, so a model error of a fiftieth of the light can be red at 0.5% noise and is under the
-#: yellow line at 2%: on the suite (session 41) the two targets red by chi2 alone (lamp1_r137_n0.5 chi2 34, sun55_r137_n0.5 chi2 31,
-#: SSIM 0.98 / 0.90) leave 2.3% / 2.0% of their photo, the suite's 2% targets 1.9-4.1% (noise and model error);
+#: yellow line at 2%: on the suite (session 41) the two targets red by chi2 alone (lamp1_r137_n0.5 chi2 34,
+#: sun55_r137_n0.5 chi2 31, SSIM 0.98 / 0.90) leave 2.3% / 2.0% of their photo, the suite's 2% targets 1.9-4.1%
+#: (noise and model error);
 #: on tests/test_verdict.py's toy the sun put half a turn away leaves 7.4%, the map at 0.9x 10%, a hot pixel all of
 #: it. A round value between the two, not a fit to either side.
 VERDICT_RESIDUAL_RED = 0.05
