@@ -36,7 +36,9 @@ def overview_figure(path: str | Path, target: np.ndarray, truth: np.ndarray | No
     estimate, mask = to_file(estimate), to_file(mask)
     ref = None
     if truth is not None:
-        t, ref = tonemap(np.where(mask[..., None], truth, 0.0))
+        from objcam.metrics import tonemap_scale  # the scores' white (a flat background is not white)
+
+        t, ref = tonemap(np.where(mask[..., None], truth, 0.0), tonemap_scale(truth, mask))
         panels.append(("true envmap (area-averaged)", t))
     e, ref = tonemap(estimate, ref)
     panels.append(("recovered envmap", e * np.where(mask[..., None], 1.0, 0.3)))
@@ -50,6 +52,7 @@ def overview_figure(path: str | Path, target: np.ndarray, truth: np.ndarray | No
         ax.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=9)
-    fig.text(0.5, -0.02, f"tonemap: divide by the truth's 99th percentile ({ref:.3g}), clip, gamma 1/2.2",
+    fig.text(0.5, -0.02, f"tonemap: divide by the truth's white ({ref:.3g}, objcam.metrics.tonemap_scale), clip, "
+             "gamma 1/2.2",
              ha="center", fontsize=7)
     save_figure(fig, path)

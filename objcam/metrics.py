@@ -7,7 +7,8 @@ texels the solve kept (the only ones compared).
   mean(truth)`` over kept texels and all channels. ``relative_rmse_solid_angle`` weights each texel by its solid
   angle instead (an error per steradian rather than per texel).
 - Tonemapped comparisons: both maps are divided by the truth's 99th percentile (over the channel values of the
-  kept texels), clipped to [0, 1] and raised to 1/2.2; texels outside the mask are set to 0 in both. Then RMSE
+  kept texels; its maximum where that percentile is a plateau holding at least half the values, a dark room's
+  uniform walls, which it would show as one flat white), clipped to [0, 1] and raised to 1/2.2; texels outside the mask are set to 0 in both. Then RMSE
   over kept texels and SSIM (Wang et al. 2004: Gaussian window sigma 1.5 truncated at radius 5 -- 11 x 11 --
   or at radius H on grids with fewer than 5 rows, C1 = (0.01)^2, C2 = (0.03)^2 for data range 1, computed per
   channel and averaged). The SSIM map is computed on the whole grid with spherical padding (columns wrap in
@@ -93,14 +94,25 @@ def relative_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = 
     return float(np.sqrt(mse) / mean) if mean > 0 else float("inf")
 
 
+#: the share of the kept channel values at (or above) the tonemap's percentile from which that percentile is a
+#: plateau: a uniform background filling most of the sky (a dark room's walls with a few lamps), which the
+#: percentile would map to white, leaving the tonemapped truth one flat value that every map at least as bright
+#: matches (SSIM 1 for the constant map: a metric that cannot fail). There the tonemap's white is the maximum.
+PLATEAU_SHARE = 0.5
+
+
 def tonemap_scale(truth: np.ndarray, mask: np.ndarray | None = None, percentile: float = 99.0) -> float:
-    """The truth's ``percentile`` over the channel values of the kept texels (falls back to its max, then 1)."""
+    """The truth's ``percentile`` over the channel values of the kept texels; its maximum instead where at least
+    :data:`PLATEAU_SHARE` of those values sit at the percentile (a flat background: see there) or the percentile
+    is not positive; 1 for a black truth."""
     truth = np.asarray(truth, dtype=np.float64)
     m = np.ones(truth.shape[:2], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     vals = truth[m]
-    s = float(np.percentile(vals, percentile)) if vals.size else 0.0
-    if s <= 0:
-        s = float(vals.max()) if vals.size else 0.0
+    if not vals.size:
+        return 1.0
+    s = float(np.percentile(vals, percentile))
+    if s <= 0 or np.mean(vals >= s * (1.0 - 1e-9)) >= PLATEAU_SHARE:
+        s = float(vals.max())
     return s if s > 0 else 1.0
 
 

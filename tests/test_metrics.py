@@ -106,16 +106,40 @@ def test_identical_maps():
 
 def test_tonemap_uses_truth_percentile():
     h = 8
-    truth = np.ones((h, 2 * h, 3))
+    truth = np.linspace(0.5, 1.5, h)[:, None, None] * np.ones((h, 2 * h, 3))  # a sky brighter towards the horizon
     truth[0, 0] = 1000.0  # 3 of 384 values: above the 99th percentile
     mask = np.ones((h, 2 * h), bool)
     s = tonemap_scale(truth, mask)
     assert s == pytest.approx(np.percentile(truth, 99))
-    assert s == pytest.approx(1.0)
+    assert s == pytest.approx(1.5)
     t = tonemap(truth * 0.5, s)
-    assert t[1, 1, 0] == pytest.approx(0.5 ** (1 / 2.2))
+    assert t[-1, 1, 0] == pytest.approx(0.5 ** (1 / 2.2))
     assert t[0, 0, 0] == 1.0
     assert tonemap_scale(np.zeros((h, 2 * h, 3)), mask) == 1.0
+
+
+def test_a_flat_background_is_not_the_tonemaps_white():
+    """A dark room: uniform walls and two lamps on 0.3% of the sky. Its 99th percentile is the walls' value, which
+    would tonemap the truth to one flat white that the constant map matches (SSIM 1: a metric that cannot fail);
+    the tonemap's white is the brightest lamp instead, and the flat maps score far below the truth."""
+    from objcam.baselines import baseline_metrics
+
+    h = 32
+    truth = np.full((h, 2 * h, 3), 0.01)
+    truth[3, 5:7] = 1e3  # a lamp
+    truth[6, 20] = 10.0  # a dimmer one
+    mask = np.zeros((h, 2 * h), bool)
+    mask[: h // 2] = True
+    assert np.mean(truth[mask] >= np.percentile(truth[mask], 99)) > 0.9  # the percentile is the walls' value
+    assert tonemap_scale(truth, mask) == 1e3
+    b = baseline_metrics(truth, mask)
+    assert b["constant"]["ssim"] < 0.5 and b["row_mean"]["ssim"] < 0.8
+    assert envmap_metrics(truth, truth, mask)["ssim"] == pytest.approx(1.0)
+    # the test of the test: the plain percentile scores the constant map as the truth itself
+    s = float(np.percentile(truth[mask], 99))
+    flat = np.broadcast_to(truth[mask].mean(axis=0), truth.shape)
+    assert ssim(np.where(mask[..., None], tonemap(flat, s), 0), np.where(mask[..., None], tonemap(truth, s), 0),
+                mask) == pytest.approx(1.0)
 
 
 # ---------------------------------------------------------------------------------------------------- SSIM

@@ -15,7 +15,7 @@ values (truth/truth.json ``albedo``) put on the scene's meshes (the support plan
 texture's extent), the same camera and sub-pixel samples through Mitsuba, the mean albedo of the samples that hit.
 
 Writes ``metrics.json`` ({target: metrics}), ``<target>/compare.png`` (truth | estimate | |error|, one
-exposure: the truth's 99th percentile, gamma 2.2) and ``<target>/overview.png`` (target photo | truth |
+exposure: the scores' white, objcam.metrics.tonemap_scale, gamma 2.2) and ``<target>/overview.png`` (target photo | truth |
 estimate, with titles).
 """
 
@@ -59,8 +59,10 @@ def input_files(capture: Path) -> list[Path]:
 
 def _compare_png(path: Path, truth: np.ndarray, est: np.ndarray, mask: np.ndarray) -> None:
     """truth | estimate | |error|, each (H, 2H) of objcam's grid drawn in the standard file convention."""
+    from objcam.metrics import tonemap_scale
+
     truth, est, mask = to_file(truth), to_file(est), to_file(mask)
-    t, ref = tonemap(truth)
+    t, ref = tonemap(truth, tonemap_scale(truth, mask))  # the scores' white
     e, _ = tonemap(est, ref)
     err, _ = tonemap(np.abs(est - truth), ref)
     grey = np.where(mask[..., None], 1.0, 0.25)  # dim texels the solve did not model

@@ -33,8 +33,9 @@ VERSION = "3"
 CODE_DEPS = ("objcam.report.html", "objcam.report.speed", "objcam.report.capture", "objcam.report.envmap_view",
              "objcam.report.results")
 
-EXPOSURE_NOTE = ("Envmaps share one exposure: divided by the truth's 99th percentile (over solved texels), clipped "
-                 "to 1, gamma 1/2.2; texels the solve did not model are dimmed.")
+EXPOSURE_NOTE = ("Envmaps share one exposure: divided by the truth's 99th percentile (over solved texels; its maximum "
+                 "where a flat background fills that percentile), clipped to 1, gamma 1/2.2; texels the solve did "
+                 "not model are dimmed.")
 EVAL_KEYS = ("ssim", "relative_rmse", "relative_rmse_solid_angle", "tonemapped_rmse", "brightest_angle_deg",
              "scale", "best_scale", "albedo_relative_rmse", "albedo_ssim")
 SOLVE_KEYS = ("method", "texels", "pixels_used", "pixels_excluded", "iterations", "kkt_residual_max",
@@ -168,8 +169,8 @@ def _target_section(t: str, up: dict[str, Path], metrics: dict, group: str | Non
         parts.append(H.grid([
             H.figure(overview, "target photo | true envmap (area-averaged) | recovered envmap. " + EXPOSURE_NOTE,
                      plot=True),
-            H.figure(png(ed / "compare.png"), "truth | estimate | |error| (the truth's 99th percentile, clipped, "
-                     "gamma 1/2.2; unsolved texels dimmed)", missing="no error map (evaluate/compare.png)"),
+            H.figure(png(ed / "compare.png"), "truth | estimate | |error| (the scores' exposure, clipped, gamma "
+                     "1/2.2; unsolved texels dimmed)", missing="no error map (evaluate/compare.png)"),
         ], wide=True))
     else:
         parts.append(H.note("No truth for this target: the recovered envmap is shown alone "
