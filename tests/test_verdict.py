@@ -17,7 +17,7 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.pipeline.cli import main
 from objcam.solvers.plan.targets import TargetData, TargetSolution
-from objcam.solvers.plan.verdict import assess, dark_sky_area, grade
+from objcam.solvers.plan.verdict import assess, black_light, dark_sky_area, grade
 from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
 
 H = 16
@@ -89,7 +89,9 @@ def test_a_black_patch_in_the_sky_turns_red(toy):
     holed[: H // 2, : H // 2] = 0.0  # a quarter of every sky row's azimuths
     v = _verdict(tr, photo, holed, tr.predict(tr.x_from_envmap(holed)))
     assert v["dark_sky_area"] == pytest.approx(0.25, abs=0.02) and v["grade"] == "red"
+    assert v["dark_sky_light"] > 0.15  # at its rows' level, a quarter of a sky lit all round holds its share
     assert any(r.startswith("25% of the sky is black") for r in v["reasons"])
+    assert "red" == grade({k: v[k] for k in ("dark_sky_area", "dark_sky_light")})[0]  # red for the black alone
     y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
     d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
     mask = np.ones(holed.shape[:2], bool)
@@ -128,6 +130,42 @@ def test_dark_sky_area():
     assert dark_sky_area(lum, omega, np.zeros(6, bool)) == 0.0
 
 
+def test_black_light_counts_the_black_at_its_rows_level():
+    # two rows of two texels: a bright row (10, black) and a dim one (1, black); unit solid angles
+    lum = np.array([10.0, 0.0, 1.0, 0.0])
+    omega = np.ones(4)
+    sky, rows = np.ones(4, bool), np.array([0, 0, 1, 1])
+    assert black_light(lum, omega, lum == 0, sky, rows) == pytest.approx(11 / 22)
+    assert black_light(lum, omega, np.array([False, False, False, True]), sky, rows) == pytest.approx(1 / 12)
+    assert black_light(lum, omega, np.zeros(4, bool), sky, rows) == 0.0
+    # a row's level is its median: a lamp in it is not (row 0: a lamp of 100 among walls of 1)
+    lamp = np.array([100.0, 1.0, 1.0, 0.0, 1.0, 1.0, 1.0, 1.0])
+    assert black_light(lamp, np.ones(8), lamp == 0, np.ones(8, bool), np.repeat([0, 1], 4)) == pytest.approx(1 / 107)
+    # a wholly black row counts at the sky's median; a wholly black sky holds all of it
+    assert black_light(np.array([4.0, 2.0, 0.0, 0.0]), omega, np.array([False, False, True, True]), sky,
+                       rows) == pytest.approx(6 / 12)
+    assert black_light(np.zeros(4), omega, np.ones(4, bool), sky, rows) == 1.0
+
+
+def test_a_dark_rooms_black_walls_are_yellow(toy):
+    """A lamp in a dark room (walls at 1e-3 of it) whose solve left a quarter of the walls black: the area is a
+    quarter of the sky, the light it would hold a few thousandths (yellow); the same hole in a sunlit sky is red
+    (test_a_black_patch_in_the_sky_turns_red)."""
+    tr, truth, _, _ = toy
+    grid = EnvGrid(H)
+    theta, phi = grid.centres()
+    room = np.full(truth.shape, 1e-3)
+    room[3, 5] = 50.0  # the lamp, 40 deg up
+    clean = tr.predict(tr.x_from_envmap(room))
+    photo = clean + NOISE * np.median(clean[clean > 0]) * np.random.default_rng(2).normal(size=clean.shape)
+    holed = room.copy()
+    holed[: H // 2, H:] = 0.0  # half of every sky row's azimuths, away from the lamp
+    v = _verdict(tr, photo, holed, tr.predict(tr.x_from_envmap(holed)))
+    assert v["dark_sky_area"] == pytest.approx(0.5, abs=0.02) and v["dark_sky_light"] < 0.05
+    assert v["grade"] == "yellow", v["reasons"]
+    assert any(r.startswith("50% of the sky is black") and "of the light" in r for r in v["reasons"])
+
+
 def test_grade_rules():
     assert grade({"chi2": 1.0, "uncertain_area": 0.1}) == ("green", [])
     g, why = grade({"chi2": 9.0, "uncertain_area": 0.1})
@@ -142,6 +180,12 @@ def test_grade_rules():
     assert g == "yellow" and why[0].startswith("90% of the sky weakly")  # dark, flat, undetermined: not red
     g, why = grade({"chi2": 1.0, "uncertain_area": 0.9, "uncertain_visible_area": 0.8, "below_horizon_energy": 0.2})
     assert g == "red" and why[0].startswith("80% of the sky") and "below the horizon" in why[1]
+    # undetermined where it shows, but a few thousandths of the light (a dark room's walls): yellow; a fifth: red
+    g, why = grade({"chi2": 1.0, "uncertain_area": 0.99, "uncertain_visible_area": 0.99,
+                    "uncertain_visible_energy": 0.004})
+    assert g == "yellow" and why[0].startswith("99% of the sky is not determined") and "0.4% of the light" in why[0]
+    g, why = grade({"chi2": 1.0, "uncertain_visible_area": 0.8, "uncertain_visible_energy": 0.2})
+    assert g == "red" and why[0] == "80% of the sky is not determined by the photo at the brightness it is shown (20% of the light)"
     assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
     assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
     assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
@@ -149,6 +193,10 @@ def test_grade_rules():
     assert grade({"dark_sky_area": 0.05})[0] == "yellow"
     g, why = grade({"dark_sky_area": 0.2})
     assert g == "red" and why[0].startswith("20% of the sky is black")
+    assert grade({"dark_sky_area": 0.3, "dark_sky_light": 0.15})[0] == "red"  # a tenth of the light and more
+    g, why = grade({"dark_sky_area": 0.3, "dark_sky_light": 0.01})  # dim walls
+    assert g == "yellow" and why[0].startswith("30% of the sky is black (held at radiance 0), at its rows' level 1.0%")
+    assert grade({"dark_sky_area": 0.01, "dark_sky_light": 0.5})[0] == "green"  # a black speck is no region
     g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9})  # solve.sky_profile: the azimuth is the prior's
     assert g == "yellow" and why == [why[0]] and why[0].startswith("90% of the sky shown as one value per")
     assert "within the misfit" not in why[0]
@@ -158,6 +206,8 @@ def test_grade_rules():
     g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9, "dark_sky_area": 0.0, "dark_sky_area_solved": 0.49})
     assert g == "red" and why[0].startswith("49% of the sky came out black (held at radiance 0) before its row")
     assert grade({"sky_profile_area": 0.9, "dark_sky_area_solved": 0.05})[1][0].startswith("5% of the sky came out")
+    g, why = grade({"sky_profile_area": 0.9, "dark_sky_area_solved": 0.3, "dark_sky_light_solved": 0.004})
+    assert g == "yellow" and why[0].startswith("30% of the sky came out black")
 
 
 def test_camera_looking_past_the_object_is_red(tmp_path, capsys):

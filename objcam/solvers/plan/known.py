@@ -43,7 +43,7 @@ from objcam.solvers.plan.rules import (
     weak_texels,
 )
 from objcam.solvers.plan.targets import TargetData, TargetSolution, texel_mask
-from objcam.solvers.plan.verdict import chi2_per_value, dark_sky_area
+from objcam.solvers.plan.verdict import black_light, chi2_per_value, dark_sky, dark_sky_area
 from objcam.solvers.refine import average_to, coarse_of, contrast, refined_basis, split_by_contrast
 from objcam.solvers.skyprofile import (
     floor_step,
@@ -164,8 +164,12 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     else:  # no sky texel, or a supersampled A: the row means where their test kept them
         X, profile = got.x, got.sky
     if profile is not None:  # the black the edge solve left, which the profile fills: the verdict still sees it
-        up = tr.directions[:, 2] > 0
-        rec["dark_sky_area_solved"] = dark_sky_area(X0.mean(axis=1), tr.solid_angle.astype(np.float64), up & inside)
+        up, omega = tr.directions[:, 2] > 0, tr.solid_angle.astype(np.float64)
+        rec["dark_sky_area_solved"] = dark_sky_area(X0.mean(axis=1), omega, up & inside)
+        # the light the profile put where the edge solve left black
+        rows = np.asarray(tr.texel_index, np.int64) // grid.width
+        rec["dark_sky_light_solved"] = black_light(X.mean(axis=1), omega, dark_sky(X0.mean(axis=1), up & inside),
+                                                   up & inside, rows)
     edge_info["sky_profile"] = rec
     return X, kkt, obj, iters, edge_info, rejected, profile
 
