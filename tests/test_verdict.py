@@ -89,7 +89,7 @@ def test_a_black_patch_in_the_sky_turns_red(toy):
     holed[: H // 2, : H // 2] = 0.0  # a quarter of every sky row's azimuths
     v = _verdict(tr, photo, holed, tr.predict(tr.x_from_envmap(holed)))
     assert v["dark_sky_area"] == pytest.approx(0.25, abs=0.02) and v["grade"] == "red"
-    assert v["dark_sky_light"] > 0.15  # at its rows' level, a quarter of a sky lit all round holds its share
+    assert v["dark_sky_light"] > 0.15  # at the sky's level, a quarter of a sky lit all round holds its share
     assert any(r.startswith("25% of the sky is black") for r in v["reasons"])
     assert "red" == grade({k: v[k] for k in ("dark_sky_area", "dark_sky_light")})[0]  # red for the black alone
     y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
@@ -130,21 +130,20 @@ def test_dark_sky_area():
     assert dark_sky_area(lum, omega, np.zeros(6, bool)) == 0.0
 
 
-def test_black_light_counts_the_black_at_its_rows_level():
-    # two rows of two texels: a bright row (10, black) and a dim one (1, black); unit solid angles
+def test_black_light_counts_the_black_at_the_skys_level():
     lum = np.array([10.0, 0.0, 1.0, 0.0])
     omega = np.ones(4)
-    sky, rows = np.ones(4, bool), np.array([0, 0, 1, 1])
-    assert black_light(lum, omega, lum == 0, sky, rows) == pytest.approx(11 / 22)
-    assert black_light(lum, omega, np.array([False, False, False, True]), sky, rows) == pytest.approx(1 / 12)
-    assert black_light(lum, omega, np.zeros(4, bool), sky, rows) == 0.0
-    # a row's level is its median: a lamp in it is not (row 0: a lamp of 100 among walls of 1)
+    sky = np.ones(4, bool)
+    assert black_light(lum, omega, lum == 0, sky) == pytest.approx(11 / 22)  # each black at the median 5.5
+    assert black_light(lum, omega, np.array([False, False, False, True]), sky) == pytest.approx(1 / 12)
+    assert black_light(lum, omega, np.zeros(4, bool), sky) == 0.0
+    # the sky's level is its median: a lamp is not (a lamp of 100 among walls of 1)
     lamp = np.array([100.0, 1.0, 1.0, 0.0, 1.0, 1.0, 1.0, 1.0])
-    assert black_light(lamp, np.ones(8), lamp == 0, np.ones(8, bool), np.repeat([0, 1], 4)) == pytest.approx(1 / 107)
-    # a wholly black row counts at the sky's median; a wholly black sky holds all of it
-    assert black_light(np.array([4.0, 2.0, 0.0, 0.0]), omega, np.array([False, False, True, True]), sky,
-                       rows) == pytest.approx(6 / 12)
-    assert black_light(np.zeros(4), omega, np.ones(4, bool), sky, rows) == 1.0
+    assert black_light(lamp, np.ones(8), lamp == 0, np.ones(8, bool)) == pytest.approx(1 / 107)
+    # most of a dark room black, what is left its lamp and rim: the walls' level, not the rim's
+    room = np.array([0.0] * 6 + [50.0, 0.01, 0.01, 0.01])
+    assert black_light(room, np.ones(10), room == 0, np.ones(10, bool)) < 0.01
+    assert black_light(np.zeros(4), omega, np.ones(4, bool), sky) == 1.0  # an all-black sky holds all of it
 
 
 def test_a_dark_rooms_black_walls_are_yellow(toy):
@@ -185,7 +184,12 @@ def test_grade_rules():
                     "uncertain_visible_energy": 0.004})
     assert g == "yellow" and why[0].startswith("99% of the sky is not determined") and "0.4% of the light" in why[0]
     g, why = grade({"chi2": 1.0, "uncertain_visible_area": 0.8, "uncertain_visible_energy": 0.2})
-    assert g == "red" and why[0] == "80% of the sky is not determined by the photo at the brightness it is shown (20% of the light)"
+    assert g == "red" and why[0] == ("80% of the sky is not determined by the photo at the brightness it is shown "
+                                     "(20% of the light)")
+    # ... or what light it does show sits where the photo barely sees (a camera that sees nothing)
+    g, why = grade({"chi2": 1.0, "uncertain_visible_area": 0.86, "uncertain_visible_energy": 0.001,
+                    "brightest_seen": 0.15, "brightest_elevation_deg": 3.0})
+    assert g == "red" and why[0].endswith("and its brightest light is where the photo barely sees")
     assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
     assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
     assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
@@ -195,7 +199,7 @@ def test_grade_rules():
     assert g == "red" and why[0].startswith("20% of the sky is black")
     assert grade({"dark_sky_area": 0.3, "dark_sky_light": 0.15})[0] == "red"  # a tenth of the light and more
     g, why = grade({"dark_sky_area": 0.3, "dark_sky_light": 0.01})  # dim walls
-    assert g == "yellow" and why[0].startswith("30% of the sky is black (held at radiance 0), at its rows' level 1.0%")
+    assert g == "yellow" and why[0].startswith("30% of the sky is black (held at radiance 0), at the sky's level 1.0%")
     assert grade({"dark_sky_area": 0.01, "dark_sky_light": 0.5})[0] == "green"  # a black speck is no region
     g, why = grade({"chi2": 1.0, "sky_profile_area": 0.9})  # solve.sky_profile: the azimuth is the prior's
     assert g == "yellow" and why == [why[0]] and why[0].startswith("90% of the sky shown as one value per")

@@ -180,7 +180,8 @@ VERDICT_RESIDUAL_RED = 0.05
 #: uncertain_area (yellow above a half of the sky) and uncertain_visible_area (red above three quarters): the
 #: latter counts texels whose spread also exceeds VERDICT_VISIBLE_FRACTION x the map's 99th percentile (a fiftieth
 #: of the tonemap's white), and is red only where those texels also hold more than VERDICT_LIGHT_RED of the map's
-#: light (uncertain_visible_energy), else yellow: a camera that sees nothing is red, a dark room whose dim walls
+#: light (uncertain_visible_energy) or the map's brightest light is poorly seen (VERDICT_SEEN_YELLOW), else
+#: yellow: a camera that sees nothing is red (its light where it barely looks), a dark room whose dim walls
 #: the photo cannot see but whose lamps it places is not (room2: SSIM 0.85-0.97 since session 42's tonemap, the
 #: walls 0.3-2% of the light; chosen on the blind metric the red had called those maps SSIM 0.00-0.18).
 VERDICT_UNCERTAIN_YELLOW = 0.5
@@ -203,8 +204,9 @@ VERDICT_MARGIN_YELLOW = 1.0 / 3.0
 #: clipped negative lobe of a deconvolution whose model misses what the photo shows, on the suite the sharp
 #: shadows of lamps smaller than a texel: with objcam's own A as the photo's model (bench.hard.ceiling) the rings
 #: shrink (the rooms' sky under a tenth of the truth: median 36% -> 11%). Yellow above a fiftieth of the sky; red
-#: where the black, at its rows' level, would also hold more than VERDICT_LIGHT_RED of the light (dark_sky_light:
-#: a quarter of a sunlit sky black holds a quarter of its light, a dark room's black walls 0.1-1%). Until session
+#: where the black, at the sky's level (the median of the sky that is not black), would also hold more than
+#: VERDICT_LIGHT_RED of the light (dark_sky_light: a quarter of a sunlit sky black holds about a quarter of its
+#: light, a dark room's black walls 0.1-1%). Until session
 #: 42 red above a tenth of the sky's area, chosen when the rooms' SSIM was blind (their tonemapped truth one flat
 #: white: every room with black walls scored < 0.4); with the tonemap fixed those rooms score 0.41-0.97.
 VERDICT_DARK_LEVEL = 1e-6

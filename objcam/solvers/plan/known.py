@@ -166,10 +166,9 @@ def with_sky_profile(tr, grid: EnvGrid, d: TargetData, fitted: np.ndarray, X: np
     if profile is not None:  # the black the edge solve left, which the profile fills: the verdict still sees it
         up, omega = tr.directions[:, 2] > 0, tr.solid_angle.astype(np.float64)
         rec["dark_sky_area_solved"] = dark_sky_area(X0.mean(axis=1), omega, up & inside)
-        # the light the profile put where the edge solve left black
-        rows = np.asarray(tr.texel_index, np.int64) // grid.width
+        # the light the black the edge solve left would hold at the final map's sky level
         rec["dark_sky_light_solved"] = black_light(X.mean(axis=1), omega, dark_sky(X0.mean(axis=1), up & inside),
-                                                   up & inside, rows)
+                                                   up & inside)
     edge_info["sky_profile"] = rec
     return X, kkt, obj, iters, edge_info, rejected, profile
 

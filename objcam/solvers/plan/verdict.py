@@ -16,12 +16,14 @@ No ground truth is used: every measure comes from the photo, the model and the s
   drew that part of the map. ``uncertain_visible_area``: the same where the spread also exceeds a fiftieth of the
   map's 99th-percentile brightness (the tonemap's white): the undetermined part a viewer sees (a dark, flat,
   undetermined background that the prior draws flat is not counted); ``uncertain_visible_energy`` its share of
-  the map's light (red needs both: a dark room's undetermined dim walls hold a few thousandths of the light).
+  the map's light (red needs both, or the map's brightest light in a poorly seen direction, ``brightest_seen``:
+  a dark room's undetermined dim walls hold a few thousandths of the light beside lamps the photo sees well; a
+  camera that sees nothing leaves the rest of its sky undetermined and its light where it barely looks).
 * ``dark_sky_area``: the share of the solved sky (solid angle above the horizon) that the solve held at the
   radiance >= 0 bound (luminance at most ``VERDICT_DARK_LEVEL`` x the sky's 99th percentile). No real sky is black
   over an area; a black region is the clipped negative lobe of a fit to what the model cannot express, e.g. the
   sharp shadows of a light smaller than a texel, which box texels can only sharpen by a dark ring around it.
-  ``dark_sky_light``: the light that black would hold at its rows' level (:func:`black_light`) as a share of the
+  ``dark_sky_light``: the light that black would hold at the sky's level (:func:`black_light`) as a share of the
   map's (red needs it above a tenth: black walls in a dark room are not a black patch in a sunlit sky).
   ``dark_sky_area_solved`` / ``dark_sky_light_solved``: the same of the edge solve's map where solve.sky_profile
   then gave the sky as its row means (which fill the black but not what the model missed there); the grade takes
@@ -260,13 +262,12 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     total = max(float(energy.sum()), 1e-300)
     mask = sol.fine[1] if sol.fine is not None else sol.mask
     solved = np.ones(lum.size, bool) if mask is None else np.asarray(mask, bool).reshape(-1)[tr.texel_index]
-    rows = np.asarray(tr.texel_index, np.int64) // tr.grid.width
     rec: dict = {"noise_per_fitted_pixel": sigma_rel, "noise_source": noise_source,
                  "pixels_excluded": float(1.0 - d.use.mean()),
                  "pixels_rejected": float(0.0 if sol.rejected is None else sol.rejected.sum() / max(d.use.sum(), 1)),
                  "below_horizon_energy": float(energy[~up].sum() / total),
                  "dark_sky_area": dark_sky_area(lum, omega, up & solved),
-                 "dark_sky_light": black_light(lum, omega, dark_sky(lum, up & solved), up & solved, rows),
+                 "dark_sky_light": black_light(lum, omega, dark_sky(lum, up & solved), up & solved),
                  "residual_fraction": residual_fraction(y[use], fit)}
     grams, nc = tr.gram(), tr.A.shape[0]  # (C, N, N), memory-mapped: read in bands, never copied whole
     dropped = [] if use.all() else [np.asarray(tr.A[c][~use], np.float64) for c in range(nc)]
@@ -286,6 +287,7 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
         if sol.profile is not None and sol.profile.any():
             # texels the map gives as one value per row (objcam.solvers.skyprofile): the spread of that value in
             # the model the map claims, not one free texel's
+            rows = tr.texel_index // tr.grid.width
             s = np.where(sol.profile, row_mean_spread(grams, dropped, D, sigma_rel, sigma_abs, lr_rel, rows,
                                                       sol.profile), s)
             rec["uncertainty_row_means"] = int(np.unique(rows[sol.profile]).size)
@@ -329,23 +331,20 @@ def dark_sky_area(lum: np.ndarray, omega: np.ndarray, sky: np.ndarray) -> float:
     return float(omega[dark_sky(lum, sky)].sum() / omega[sky].sum())
 
 
-def black_light(lum: np.ndarray, omega: np.ndarray, black: np.ndarray, sky: np.ndarray, rows: np.ndarray) -> float:
-    """The share of the sky's light that the texels ``black`` (N,) bool would hold at their rows' level: each
-    counted at the median luminance of its row's other texels of ``sky`` (a lamp in the row is not its level; the
-    sky's median where its row has none), over the sky's light so counted. lum, omega (N,): luminance and solid
-    angle (sr) per texel; rows (N,) int: each texel's lat-long row. A black region in a dark room's dim walls
-    holds a few thousandths of the light, a quarter of a sunlit sky about a quarter of it."""
+def black_light(lum: np.ndarray, omega: np.ndarray, black: np.ndarray, sky: np.ndarray) -> float:
+    """The share of the sky's light that the texels ``black`` (N,) bool would hold at the sky's level: each counted
+    at the median luminance of the texels of ``sky`` (N,) bool that are not black (a lamp is not the sky's level;
+    a row's own median is not either where the black fills most of it and what is left of the row is a lamp's
+    rim), over the sky's light so counted. lum, omega (N,): luminance and solid angle (sr) per texel. A black
+    region in a dark room's dim walls holds a few thousandths of the light, a quarter of a sunlit sky about a
+    quarter of it; an all-black sky all of it."""
     black = black & sky
     if not black.any():
         return 0.0
     ok = sky & ~black
     if not ok.any():
         return 1.0
-    level = np.where(black, 0.0, lum)
-    everywhere = float(np.median(lum[ok]))
-    for r in np.unique(rows[black]):
-        lit = ok & (rows == r)
-        level[black & (rows == r)] = np.median(lum[lit]) if lit.any() else everywhere
+    level = np.where(black, float(np.median(lum[ok])), lum)
     total = float((level[sky] * omega[sky]).sum())
     return float((level[black] * omega[black]).sum() / total) if total > 0 else 1.0
 
@@ -367,24 +366,27 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     elif chi2 is not None and chi2 > VERDICT_CHI2_YELLOW:
         yellow.append(f"residual {np.sqrt(chi2):.1f}x the noise: the photo holds light or geometry the model lacks")
     uv, ua, ue = m.get("uncertain_visible_area"), m.get("uncertain_area"), m.get("uncertain_visible_energy")
-    if uv is not None and uv > VERDICT_UNCERTAIN_RED and (ue is None or ue > VERDICT_LIGHT_RED):
+    # the light the map does show where the photo barely sees: then a map mostly undetermined has nothing to stand on
+    poorly = m.get("brightest_seen", 1.0) < VERDICT_SEEN_YELLOW and m.get("brightest_elevation_deg", 90.0) >= 0
+    if uv is not None and uv > VERDICT_UNCERTAIN_RED and (ue is None or ue > VERDICT_LIGHT_RED or poorly):
         red.append(f"{uv:.0%} of the sky is not determined by the photo at the brightness it is shown"
-                   + (f" ({ue:.0%} of the light)" if ue is not None else ""))
+                   + (f" ({ue:.0%} of the light)" if ue is not None and ue > VERDICT_LIGHT_RED else
+                      ", and its brightest light is where the photo barely sees" if poorly else ""))
     elif uv is not None and uv > VERDICT_UNCERTAIN_RED:
         yellow.append(f"{uv:.0%} of the sky is not determined by the photo at the brightness it is shown, but holds "
                       f"{ue:.1%} of the light (a dark room's dim walls, say)")
     elif ua is not None and ua > VERDICT_UNCERTAIN_YELLOW:
         yellow.append(f"{ua:.0%} of the sky weakly determined (uncertainty above the value)")
     dark, filled = m.get("dark_sky_area", 0.0), m.get("dark_sky_area_solved", 0.0)
-    # the light the black would hold at its rows' level (the area itself where that was not measured)
+    # the light the black would hold at the sky's level (the area itself where that was not measured)
     light = max(m.get("dark_sky_light", dark), m.get("dark_sky_light_solved", filled))
     black = (f"{dark:.0%} of the sky is black (held at radiance 0)" if dark >= filled else
              f"{filled:.0%} of the sky came out black (held at radiance 0) before its row means filled it")
     if max(dark, filled) > VERDICT_DARK_YELLOW and light > VERDICT_LIGHT_RED:
-        red.append(f"{black}, at its rows' level {light:.0%} of the light: the fit there answers what the model "
+        red.append(f"{black}, at the sky's level {light:.0%} of the light: the fit there answers what the model "
                    "cannot express, e.g. the sharp shadows of a light smaller than a texel; see residual.exr")
     elif max(dark, filled) > VERDICT_DARK_YELLOW:
-        yellow.append(f"{black}, at its rows' level {light:.1%} of the light: the model may miss a light smaller "
+        yellow.append(f"{black}, at the sky's level {light:.1%} of the light: the model may miss a light smaller "
                       "than a texel")
     below, el = m.get("below_horizon_energy", 0.0), m.get("brightest_elevation_deg", 90.0)
     if el < 0:
