@@ -151,8 +151,6 @@ def test_a_dark_rooms_black_walls_are_yellow(toy):
     quarter of the sky, the light it would hold a few thousandths (yellow); the same hole in a sunlit sky is red
     (test_a_black_patch_in_the_sky_turns_red)."""
     tr, truth, _, _ = toy
-    grid = EnvGrid(H)
-    theta, phi = grid.centres()
     room = np.full(truth.shape, 1e-3)
     room[3, 5] = 50.0  # the lamp, 40 deg up
     clean = tr.predict(tr.x_from_envmap(room))

@@ -15,8 +15,8 @@ values (truth/truth.json ``albedo``) put on the scene's meshes (the support plan
 texture's extent), the same camera and sub-pixel samples through Mitsuba, the mean albedo of the samples that hit.
 
 Writes ``metrics.json`` ({target: metrics}), ``<target>/compare.png`` (truth | estimate | |error|, one
-exposure: the scores' white, objcam.metrics.tonemap_scale, gamma 2.2) and ``<target>/overview.png`` (target photo | truth |
-estimate, with titles).
+exposure: the scores' white, objcam.metrics.tonemap_scale, gamma 2.2) and ``<target>/overview.png`` (target
+photo | truth | estimate, with titles).
 """
 
 from __future__ import annotations
