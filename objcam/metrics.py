@@ -11,9 +11,9 @@ texels the solve kept (the only ones compared).
   uniform walls, which it would show as one flat white), clipped to [0, 1] and raised to 1/2.2; texels outside
   the mask are set to 0 in both. Then RMSE over kept texels and SSIM (Wang et al. 2004: Gaussian window sigma
   1.5 truncated at radius 5 -- 11 x 11 -- or at radius H on grids with fewer than 5 rows, C1 = (0.01)^2,
-  C2 = (0.03)^2 for data range 1, computed per channel and averaged). The SSIM map is computed on the whole grid with spherical padding (columns wrap in
-  azimuth; rows continue across a pole into the row itself shifted by half a turn) and averaged over kept
-  texels. ``ssim_masked`` (:func:`masked_ssim`) instead ignores the texels outside the mask (normalised
+  C2 = (0.03)^2 for data range 1, computed per channel and averaged). The SSIM map is computed on the whole
+  grid with spherical padding (columns wrap in azimuth; rows continue across a pole into the row itself shifted
+  by half a turn) and averaged over kept texels. ``ssim_masked`` (:func:`masked_ssim`) instead ignores the texels outside the mask (normalised
   convolution), so the border between solved and unsolved texels earns no credit; reported beside ``ssim``.
 - Peak direction: the brightest kept texel of the luminance map (Rec. 709 weights), refined to the mean
   direction of the 4-connected region (wrapping in azimuth) of kept texels at >= 50 % of the peak luminance
