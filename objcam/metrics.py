@@ -6,14 +6,14 @@ texels the solve kept (the only ones compared).
 - Relative RMSE (headline, as in the method's paper): plain per texel, ``sqrt(mean (est - truth)^2) /
   mean(truth)`` over kept texels and all channels. ``relative_rmse_solid_angle`` weights each texel by its solid
   angle instead (an error per steradian rather than per texel).
-- Tonemapped comparisons: both maps are divided by the truth's 99th percentile (over the channel values of the
-  kept texels; its maximum where that percentile is a plateau holding at least half the values, a dark room's
-  uniform walls, which it would show as one flat white), clipped to [0, 1] and raised to 1/2.2; texels outside
-  the mask are set to 0 in both. Then RMSE over kept texels and SSIM (Wang et al. 2004: Gaussian window sigma
-  1.5 truncated at radius 5 -- 11 x 11 -- or at radius H on grids with fewer than 5 rows, C1 = (0.01)^2,
-  C2 = (0.03)^2 for data range 1, computed per channel and averaged). The SSIM map is computed on the whole
-  grid with spherical padding (columns wrap in azimuth; rows continue across a pole into the row itself shifted
-  by half a turn) and averaged over kept texels. ``ssim_masked`` (:func:`masked_ssim`) instead ignores the texels outside the mask (normalised
+- Tonemapped comparisons: both maps are divided by the truth's 99th percentile (over the channel values of the kept
+  texels; its maximum where that percentile is a plateau holding at least half the values, a dark room's uniform
+  walls, which it would show as one flat white), clipped to [0, 1] and raised to 1/2.2; texels outside the mask are
+  set to 0 in both. Then RMSE over kept texels and SSIM (Wang et al. 2004: Gaussian window sigma 1.5 truncated at
+  radius 5 -- 11 x 11 -- or at radius H on grids with fewer than 5 rows, C1 = (0.01)^2, C2 = (0.03)^2 for data range
+  1, computed per channel and averaged). The SSIM map is computed on the whole grid with spherical padding (columns
+  wrap in azimuth; rows continue across a pole into the row itself shifted by half a turn) and averaged over kept
+  texels. ``ssim_masked`` (:func:`masked_ssim`) instead ignores the texels outside the mask (normalised
   convolution), so the border between solved and unsolved texels earns no credit; reported beside ``ssim``.
 - Peak direction: the brightest kept texel of the luminance map (Rec. 709 weights), refined to the mean
   direction of the 4-connected region (wrapping in azimuth) of kept texels at >= 50 % of the peak luminance
