@@ -395,7 +395,7 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
         red.append(f"{below:.0%} of the energy below the horizon")
     elif below > VERDICT_BELOW_YELLOW:
         yellow.append(f"{below:.0%} of the energy below the horizon")
-    if m.get("brightest_seen", 1.0) < VERDICT_SEEN_YELLOW and el >= 0:
+    if poorly:
         yellow.append(f"the brightest light is in a poorly seen direction (elevation {el:.0f} deg)")
     if m.get("pixels_rejected", 0.0) > VERDICT_REJECTED_YELLOW:
         yellow.append(f"{m['pixels_rejected']:.1%} of the pixels dropped as outliers (fireflies, hot pixels, glints "
