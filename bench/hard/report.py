@@ -108,8 +108,9 @@ def targets(rows: list[dict]) -> list[str]:
         b_s = np.mean([r["beats_row_mean"]["ssim"] for r in s])
         b_t = np.mean([r["beats_row_mean"]["tonemapped_rmse"] for r in s])
         perfect = [r["target"] for r in s if _row_mean_perfect(r)]
-        line(b_s >= 0.8, f"beats the row-mean oracle in SSIM in >= 80% of targets (issue 28): {100 * b_s:.0f}% "
-             f"(tonemapped RMSE: {100 * b_t:.0f}%)"
+        # issue 28 counts the cases that beat the oracle "in SSIM and in tonemapped RMSE": both shares must reach it
+        line(b_s >= 0.8 and b_t >= 0.8, f"beats the row-mean oracle in >= 80% of targets in SSIM and in tonemapped "
+             f"RMSE (issue 28): {100 * b_s:.0f}% and {100 * b_t:.0f}%"
              + (f"; in {len(perfect)} the row-mean map scores SSIM 1 (the tonemapped truth white over the whole "
                 f"sky: no map can beat it, so at most {100 * (len(s) - len(perfect)) / len(s):.0f}%): "
                 f"{', '.join(perfect)}" if perfect else ""))
