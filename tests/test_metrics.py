@@ -140,6 +140,14 @@ def test_a_flat_background_is_not_the_tonemaps_white():
     flat = np.broadcast_to(truth[mask].mean(axis=0), truth.shape)
     assert ssim(np.where(mask[..., None], tonemap(flat, s), 0), np.where(mask[..., None], tonemap(truth, s), 0),
                 mask) == pytest.approx(1.0)
+    # noisy walls (a chrome ball's truth) sit just under their percentile: still a plateau
+    noisy = truth * (1.0 + 0.01 * np.random.default_rng(0).normal(size=truth.shape))
+    assert np.mean(noisy[mask] >= np.percentile(noisy[mask], 99)) < 0.02  # no exact plateau
+    assert tonemap_scale(noisy, mask) == noisy[mask].max()
+    # a sky a quarter brighter at the horizon than at the zenith keeps its percentile (a quarter of its values
+    # within 5% of it)
+    grad = np.linspace(1.0, 1.5, h)[:, None, None] * np.ones((h, 2 * h, 3))
+    assert tonemap_scale(grad, mask) == pytest.approx(np.percentile(grad[mask], 99))
 
 
 # ---------------------------------------------------------------------------------------------------- SSIM
