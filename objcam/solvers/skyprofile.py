@@ -66,7 +66,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from objcam.envmap import EnvGrid
-from objcam.solvers.sources import BRIGHT_FACTOR, bright_blobs, fit_residual, rim_of
+from objcam.solvers.sources import BRIGHT_FACTOR, bright_blobs, fit_residual, misfit_allowance, rim_of
 
 
 def profile_fit_kept(rise: float, spread: float, allow: float, blobs: int) -> bool:
@@ -74,20 +74,6 @@ def profile_fit_kept(rise: float, spread: float, allow: float, blobs: int) -> bo
     when it lies at most ``allow`` (:func:`misfit_allowance`) above the map's and, unless the map's light is one
     source over a sky (``blobs``, its bright blobs, is 1), at most ``spread`` below it."""
     return rise <= allow and (blobs == 1 or rise >= -spread)
-
-
-def misfit_allowance(ss_map: float, values: int, sigma_abs: float | None) -> tuple[float, float]:
-    """(allowed rise of the sum of squares, the map's excess) of step 3b: the larger of the spread ``sqrt(2 /
-    values) x ss_map`` and the excess ``ss_map - values x sigma_abs^2`` (0 when negative): the part of the solved
-    map's sum of squared residuals ``ss_map`` over ``values`` fitted pixel values that honest noise of
-    ``sigma_abs`` per value cannot account for even unfitted, a lower bound of the model error the map carries
-    (a fit also absorbs some noise, so the model error can be larger; the bound keeps the step conservative).
-    sigma_abs None (noise unknown): the spread."""
-    spread = float(np.sqrt(2.0 / max(values, 1)) * ss_map)
-    if not sigma_abs or values <= 0:
-        return spread, 0.0
-    excess = max(float(ss_map) - values * float(sigma_abs) ** 2, 0.0)
-    return max(spread, excess), excess
 
 
 @dataclass

@@ -81,7 +81,7 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     data = {t.name: TargetData(tr, *target_rows(t.load_image(scene.folder), t.load_valid(scene.folder),
                                                 tr.downsample, tr.pixel_index)) for t in targets}
     sols = solve_capture(scene.model_copy(update={"targets": list(targets)}), data,
-                         SolveParams(sky_profile="off", noise_fit="off"), capture)
+                         SolveParams(sky_profile="off", noise_fit="off", sources="off"), capture)
     out = {}
     for t in targets:
         v = sols[t.name].info.get("verdict", {})

@@ -97,10 +97,12 @@ class SolveParams(BaseModel):
         "objcam.solvers.outliers; nothing is done past a tenth of the pixels); 'keep': plain least squares. "
         "Measured on the hard-case suite and the core bench (bench/results.md, issue 22)")
     sources: Literal["off", "compact"] = Field(
-        "off", description="known albedo, prior=edges: 'compact': after the solve, each bright blob (texels above "
-        "10 x the map's median) whose energy one or two of its texels explain to within the fit's own chi-squared "
-        "spread is collapsed to them, the blob's other texels set to the sky around it (objcam.solvers.sources: the "
-        "edge prior spreads a small lamp the data cannot place); 'off': the map as solved")
+        "compact", description="known albedo, prior=edges: 'compact': after the solve and its sky profile, the "
+        "light of each bright blob (texels above 10 x the map's median) is moved into the one texel of the blob "
+        "that fits the photo best (or split with a neighbour where the photo says so), kept when the fit's "
+        "misfit falls by at least a fifth of what the map misfits beyond the stated noise and no texel of the "
+        "blob away from it fits nearly as well (objcam.solvers.sources: the edge prior spreads a small lamp the "
+        "photo places); 'off': the map as solved")
     sky_profile: Literal["auto", "off"] = Field(
         "auto", description="known albedo, prior=edges: 'auto': after the solve, when the sky outside the bright "
         "blobs (texels above 10 x the map's median, grown by one texel) set to its mean per lat-long row raises the "

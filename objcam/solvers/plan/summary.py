@@ -59,7 +59,9 @@ def sources_phrase(per_target: dict[str, dict]) -> str:
     if not rec:
         return ""
     n, found = sum(r["collapsed"] for r in rec), sum(r["blobs_found"] for r in rec)
-    return f", {n} of {found} bright blob(s) collapsed to point sources (the data could not tell them apart)"
+    if not n:
+        return ""
+    return f", {n} of {found} bright blob(s) moved into one or two texels (the photo places them there)"
 
 
 def sky_profile_phrase(per_target: dict[str, dict]) -> str:
