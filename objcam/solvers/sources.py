@@ -204,7 +204,7 @@ def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray
                     factor: float = BRIGHT_FACTOR, max_blobs: int = MAX_BLOBS,
                     fall_share: float = FALL_SHARE) -> SourcesResult:
     """The step of the module docstring. A (C, M, N) the transport (C = 1: grey, or 3), ``use`` (M,) bool the
-    fitted rows, y (M, 3) the target at A's rows, x (N, 3) the solve's map at A's texels ``texel_index`` in
+    rows to fit (the solve passes every usable one), y (M, 3) the target at A's rows, x (N, 3) the solve's map at A's texels ``texel_index`` in
     ``grid`` of solid angles ``omega`` (N,) sr; ``sigma_abs`` the stated noise of one fitted value (None:
     unknown, the spread alone). Returns the map and the record (blobs found, collapsed, the misfit's change)."""
     x = np.asarray(x, np.float64)
@@ -247,8 +247,7 @@ def compact_sources(A: np.ndarray, use: np.ndarray, y: np.ndarray, x: np.ndarray
                "fall": float(ss - ss_new), "kept_to": len(choice),
                "margin": margin if np.isfinite(margin) else None,  # strict JSON: no texel away from it
                "collapsed": bool(ss - ss_new >= need and margin >= need)}
-        if rec["collapsed"]:
-            cur = cur.copy()
+        if rec["collapsed"]:  # cur is the step's own copy of x
             cur[blob] -= delta
             for j, k in enumerate(choice):
                 cur[cand[k]] += amp[j]
