@@ -243,28 +243,36 @@ def _wrapped_component(region: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
     return same[labels]
 
 
-def brightest_direction(env: np.ndarray, mask: np.ndarray | None = None, fraction: float = PEAK_FRACTION) -> np.ndarray:
-    """Unit world direction (3,) of the brightest source of a lat-long map (H, 2H[, 3]).
-
-    The brightest kept texel of the luminance, refined to the luminance x solid-angle weighted mean direction of
-    the connected region (4-neighbours, wrapping in azimuth) of kept texels with luminance >= ``fraction`` x
-    the peak that contains it. NaNs if no kept texel is brighter than 0.
-    """
+def brightest_region(env: np.ndarray, mask: np.ndarray | None = None, fraction: float = PEAK_FRACTION
+                     ) -> np.ndarray | None:
+    """(H, W) bool: the brightest source of a lat-long map (H, 2H[, 3]): the connected region (4-neighbours,
+    wrapping in azimuth) of kept texels with luminance >= ``fraction`` x the brightest kept texel's that contains
+    it. None if no kept texel is brighter than 0."""
     lum = luminance(env)
-    h = lum.shape[0]
     m = np.ones(lum.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    grid = EnvGrid(h)
     lm = np.where(m, lum, -np.inf)
     flat = int(np.argmax(lm))
     peak = lm.flat[flat]
     if not np.isfinite(peak) or peak <= 0:
+        return None
+    return _wrapped_component(m & (lum >= fraction * peak), np.unravel_index(flat, lm.shape))
+
+
+def brightest_direction(env: np.ndarray, mask: np.ndarray | None = None, fraction: float = PEAK_FRACTION) -> np.ndarray:
+    """Unit world direction (3,) of the brightest source of a lat-long map (H, 2H[, 3]): the luminance x
+    solid-angle weighted mean direction of its :func:`brightest_region`. NaNs if no kept texel is brighter than 0.
+    """
+    region = brightest_region(env, mask, fraction)
+    if region is None:
         return np.full(3, np.nan)
-    seed = np.unravel_index(flat, lm.shape)
-    region = _wrapped_component(m & (lum >= fraction * peak), seed)
-    wts = (lum * grid.solid_angles())[region]
+    grid = EnvGrid(region.shape[0])
+    wts = (luminance(env) * grid.solid_angles())[region]
     d = (grid.directions()[region] * wts[:, None]).sum(axis=0)
     nrm = np.linalg.norm(d)
-    return d / nrm if nrm > 0 else grid.directions()[seed]
+    if nrm > 0:
+        return d / nrm
+    lum = np.where(region, luminance(env), -np.inf)
+    return grid.directions()[np.unravel_index(int(np.argmax(lum)), lum.shape)]
 
 
 def angle_deg(u: np.ndarray, v: np.ndarray) -> float:

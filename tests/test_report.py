@@ -9,6 +9,7 @@ import shutil
 from html.parser import HTMLParser
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from objcam.pipeline import graph
@@ -171,3 +172,26 @@ def test_report_shows_albedo_and_speed_against_error(joint_capture):
     assert "estimated albedo per pixel" in text and "true albedo | estimate" in text
     assert "Speed against error" in text and "benchmark: results.json (2 runs)" in text
     assert c.images >= 10 + 3 * len(metrics)
+
+
+def test_envmap_viewer_exposure_is_the_scores_white():
+    """The viewer's 0 EV is the white evaluate's PNGs and scores use (objcam.metrics.tonemap_scale): a dark room
+    of uniform walls and two small lamps opens with its lamps at white, not as one flat white wall; a sky
+    without a plateau keeps its 99th percentile."""
+    from objcam.metrics import tonemap_scale
+    from objcam.report.envmap_view import envmap_panel, reference
+
+    room = np.full((16, 32, 3), 0.01)
+    room[8:] = 0.0  # below the horizon: unsolved, written as 0
+    room[3, 5] = 400.0
+    room[5, 20] = 120.0
+    walls = np.percentile(room[room > 0], 99)
+    assert walls == pytest.approx(0.01)  # the plain percentile: the walls at white (the test of the test)
+    assert reference(room) == pytest.approx(400.0)
+    assert 'data-ref="400.0"' in envmap_panel("t", [("truth", room)])
+    sky = np.linspace(0.1, 2.0, 16 * 32 * 3).reshape(16, 32, 3)
+    assert reference(sky) == pytest.approx(tonemap_scale(sky)) == pytest.approx(np.percentile(sky, 99))
+    assert reference(np.zeros((4, 8, 3))) == 1.0
+    nan = room.copy()
+    nan[0, 0] = np.nan
+    assert reference(nan) == pytest.approx(400.0)

@@ -17,7 +17,7 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.pipeline.cli import main
 from objcam.solvers.plan.targets import TargetData, TargetSolution
-from objcam.solvers.plan.verdict import assess, black_light, dark_sky_area, grade
+from objcam.solvers.plan.verdict import assess, black_light, brightest_source, dark_sky_area, grade
 from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
 
 H = 16
@@ -161,6 +161,34 @@ def test_a_dark_rooms_black_walls_are_yellow(toy):
     assert v["dark_sky_area"] == pytest.approx(0.5, abs=0.02) and v["dark_sky_light"] < 0.05
     assert v["grade"] == "yellow", v["reasons"]
     assert any(r.startswith("50% of the sky is black") and "of the light" in r for r in v["reasons"])
+
+
+def test_brightest_source_is_a_region_not_a_texel():
+    """A bright facade along the horizon whose single brightest texel lies a row below it (held out
+    courtyard_r60, red for a brightest light "below the horizon" at SSIM 0.82) is above the horizon, and seen as
+    its region is; a sun put below the horizon is below, and so red."""
+    grid = EnvGrid(8)  # rows 0-3 above the horizon, 4-7 below
+    tr = SimpleNamespace(grid=grid, texel_index=np.arange(grid.n_texels), solid_angle=grid.solid_angles().ravel(),
+                         directions=grid.directions().reshape(-1, 3))
+    seen = np.where(tr.directions[:, 2] > 0, 1.0, 0.01)  # the photo sees the sky, barely what lies below
+    env = np.ones((8, 16, 3))
+    env[2:4, 3:9] = 10.0  # the facade: two rows above the horizon, six columns
+    env[4, 5] = 10.5  # its brightest texel, just below the horizon
+    jb = int(np.argmax(env.mean(axis=2)))
+    assert tr.directions[jb, 2] < 0 and seen[jb] < 0.25  # the texel rule: below, poorly seen (test of the test)
+    z, s = brightest_source(env, None, tr, seen)
+    assert z > np.sin(np.radians(10.0)) and s > 0.9
+    sun = np.ones((8, 16, 3))
+    sun[4, 5] = 50.0
+    z, s = brightest_source(sun, None, tr, seen)
+    el = float(np.degrees(np.arcsin(z)))
+    assert el < 0 and s == pytest.approx(0.01)
+    assert grade({"brightest_elevation_deg": el, "brightest_seen": s})[0] == "red"
+    # unsolved texels do not count: the facade's solved part alone decides
+    mask = np.ones((8, 16), bool)
+    mask[2:4] = False
+    assert brightest_source(env, mask, tr, seen)[0] < 0
+    assert brightest_source(np.zeros((8, 16, 3)), None, tr, seen) == (tr.directions[0, 2], seen[0])  # no light
 
 
 def test_grade_rules():

@@ -4,7 +4,7 @@ direction labels of the standard lat-long convention (+x at the centre, +y a qua
 horizon line.
 
 Maps are passed as (H, 2H, 3) linear radiance in the standard file convention; the script gets them as base64
-float32 and applies exposure 2^EV / ref, clip and gamma 1/2.2 (``ref``: the first map's 99th percentile).
+float32 and applies exposure 2^EV / ref, clip and gamma 1/2.2 (``ref``: :func:`reference` of the first map).
 """
 
 from __future__ import annotations
@@ -68,9 +68,14 @@ AXIS_LABELS = ((0.0, "\u2212x"), (0.25, "+y"), (0.5, "+x"), (0.75, "\u2212y"), (
 
 
 def reference(env: np.ndarray) -> float:
-    """The exposure reference: the 99th percentile of the positive values (1 when there are none)."""
-    pos = env[np.isfinite(env) & (env > 0)]
-    return float(np.percentile(pos, 99)) if pos.size else 1.0
+    """The exposure reference: the white of evaluate's PNGs and scores (objcam.metrics.tonemap_scale) over the
+    texels with light (unsolved ones are written as 0): the 99th percentile, or the maximum where that percentile
+    is a flat background (a dark room's walls, which would otherwise open as one white); 1 for a black map."""
+    from objcam.metrics import tonemap_scale
+
+    rgb = np.nan_to_num(np.asarray(env, np.float64)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
+    lit = (rgb > 0).any(axis=-1)
+    return tonemap_scale(rgb, lit) if lit.any() else 1.0
 
 
 def _canvas(env: np.ndarray, group: str, ref: float, label: str) -> str:
@@ -96,5 +101,6 @@ def envmap_panel(group: str, maps: list[tuple[str, np.ndarray]], note: str = "",
     figs = "".join(_canvas(m, group, ref, c) for c, m in maps)
     ctl = (f'<div class="envctl"><label>exposure <input class="exposure" type="range" min="-8" max="8" step="0.5" '
            f'value="0" data-group="{esc(group)}"> <output>0 EV</output></label> <span class="meta">0 EV: '
-           f'{esc(ref_caption)}\u2019s 99th percentile ({ref:.3g}) at white, gamma 1/2.2. {esc(note)}</span></div>')
+           f'{esc(ref_caption)}\u2019s white ({ref:.3g}: its 99th percentile, its maximum where that is a flat '
+           f'background), gamma 1/2.2. {esc(note)}</span></div>')
     return ctl + f'<div class="envgrid">{figs}</div>'

@@ -190,7 +190,7 @@ VERDICT_VISIBLE_FRACTION = 0.02
 #: below_horizon_energy: energy the solve put where the support hides the sky (the truth's share is ~0).
 VERDICT_BELOW_YELLOW = 0.15
 VERDICT_BELOW_RED = 0.3
-#: brightest_seen: the brightest texel's column norm over the median one; under a quarter: a poorly seen direction.
+#: brightest_seen: the brightest source's column norm over the median one; under a quarter: a poorly seen direction.
 VERDICT_SEEN_YELLOW = 0.25
 #: pixels_rejected: more than one usable pixel in fifty dropped as an outlier (objcam.solvers.outliers).
 VERDICT_REJECTED_YELLOW = 0.02

@@ -30,7 +30,8 @@ No ground truth is used: every measure comes from the photo, the model and the s
   the larger.
 * ``below_horizon_energy``: the share of the map's energy (luminance x solid angle) the solve put below the
   horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
-  texel's elevation and its column norm over the median column norm (how strongly the photo sees that direction).
+  source's elevation and its column norm over the median column norm (how strongly the photo sees that
+  direction), both over the source's region, weighted by light (:func:`brightest_source`).
 * ``pixels_excluded``: the share of A's pixels the solve could not use (saturated, invalid, hot);
   ``pixels_rejected``: the share of the usable ones it dropped as outliers (objcam.solvers.outliers). chi2 is over
   the pixels it fitted.
@@ -246,6 +247,30 @@ def texel_uncertainty(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel
     raise AssertionError("unreachable")
 
 
+def brightest_source(env: np.ndarray, mask: np.ndarray | None, tr, seen: np.ndarray) -> tuple[float, float]:
+    """(the sine of the brightest source's elevation, how strongly the photo sees it) of the map ``env`` (H, W, 3)
+    on A's grid, its solved texels ``mask`` (H, W) bool or None; ``seen`` (N,): A's texels' relative column norms
+    (rules.relative_column_norms).
+
+    A source is a region, not a texel: the texels at >= half the brightest one's luminance connected to it
+    (objcam.metrics.brightest_region, as evaluate scores the brightest source), its elevation that of their
+    light-weighted centre, how well it is seen their light-weighted mean of ``seen``. An extended bright area
+    along the horizon (a sunlit facade) whose brightest texel happens to lie a row below it is above the horizon
+    (held out courtyard_r60: its brightest texel 16.7 at -2.8 deg beside 16.2 at +2.8, the area's centre 7 deg
+    up); a sun put below it is below."""
+    from objcam.metrics import LUMA, brightest_direction, brightest_region
+
+    region = brightest_region(env, mask)
+    lum = np.asarray(env, np.float64).reshape(-1, 3)[tr.texel_index] @ np.asarray(LUMA)
+    inside = np.zeros(lum.size, bool) if region is None else region.reshape(-1)[tr.texel_index]
+    if not inside.any():  # no light, or none of the region's texels is one of A's: the brightest of A's texels
+        jb = int(np.argmax(lum))
+        return float(tr.directions[jb, 2]), float(seen[jb])
+    w = np.clip(lum[inside], 0, None) * np.asarray(tr.solid_angle, np.float64)[inside]
+    centre = brightest_direction(env, mask)
+    return float(centre[2]), float(np.sum(w * seen[inside]) / max(float(w.sum()), 1e-300))
+
+
 def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     """The verdict record of one target (solve.json's ``verdict``): ``grade``, ``reasons`` (one line each, the
     worst first) and the measures above."""
@@ -272,9 +297,8 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     grams, nc = tr.gram(), tr.A.shape[0]  # (C, N, N), memory-mapped: read in bands, never copied whole
     dropped = [] if use.all() else [np.asarray(tr.A[c][~use], np.float64) for c in range(nc)]
     diag = data_gram_diagonal(grams, dropped)
-    jb = int(np.argmax(lum))
-    rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(tr.directions[jb, 2], -1, 1))))
-    rec["brightest_seen"] = float(relative_column_norms(diag, tr.directions)[jb])
+    up_b, rec["brightest_seen"] = brightest_source(env, mask, tr, relative_column_norms(diag, tr.directions))
+    rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(up_b, -1, 1))))
     if sigma_rel:
         rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
         D = solvers.difference_operator(tr.grid, tr.texel_index)
