@@ -299,8 +299,8 @@ def envmap_metrics(est: np.ndarray, truth: np.ndarray, kept_mask: np.ndarray | N
     ambiguity of a joint albedo/envmap solve).
     Keys: ``relative_rmse`` (plain per texel, the headline), ``relative_rmse_solid_angle``, ``tonemapped_rmse``,
     ``ssim`` (tonemapped, mean over kept texels), ``ssim_masked`` (:func:`masked_ssim`), ``brightest_angle_deg``,
-    ``scale`` (the factor applied to est: :func:`best_scale` when ``scale_invariant``, else 1.0; with "channel" the mean of the per-channel factors,
-    listed in ``scale_channels``) and ``best_scale`` (always reported).
+    ``scale`` (the factor applied to est: :func:`best_scale` when ``scale_invariant``, else 1.0; with "channel"
+    the mean of the per-channel factors, listed in ``scale_channels``) and ``best_scale`` (always reported).
     """
     est, truth, m = _check(est, truth, kept_mask)
     s_best = best_scale(est, truth, m)
