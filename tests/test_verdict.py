@@ -17,7 +17,8 @@ import pytest
 from objcam.envmap import EnvGrid
 from objcam.pipeline.cli import main
 from objcam.solvers.plan.targets import TargetData, TargetSolution
-from objcam.solvers.plan.verdict import assess, black_light, brightest_source, dark_sky_area, grade
+from objcam.solvers.plan import verdict
+from objcam.solvers.plan.verdict import assess, black_light, brightest_source, dark_sky_area, grade, resolved_values
 from tests.toy_scenes import sky_with_sun, sphere_shadow_toy
 
 H = 16
@@ -191,6 +192,34 @@ def test_brightest_source_is_a_region_not_a_texel():
     assert brightest_source(np.zeros((8, 16, 3)), None, tr, seen) == (tr.directions[0, 2], seen[0])  # no light
 
 
+def test_resolved_values_count_what_the_photo_tells_apart(toy, monkeypatch):
+    """The trace of the model resolution matrix over the sky: against R = Q^-1 G formed by hand; fewer values the
+    noisier the photo (the prior draws more of the sky), never more than the sky's texels; not computed above
+    RESOLUTION_MAX_TEXELS; assess reports it as an angle."""
+    from objcam import solvers
+    from objcam.solvers.plan.verdict import _prior
+
+    tr, truth, clean, photo = toy
+    grams = tr.gram()
+    D = solvers.difference_operator(tr.grid, tr.texel_index)
+    up = tr.directions[:, 2] > 0
+    _, ls_abs, lr_abs, P = _prior(grams, [], D, NOISE, 1e-4)
+    G = grams.mean(axis=0)
+    R = np.linalg.solve(G + ls_abs * P.toarray() + lr_abs * np.eye(G.shape[0]), G)
+    exact = resolved_values(grams, [], D, NOISE, 1e-4, up)
+    assert exact == pytest.approx(np.trace(R[np.ix_(up, up)]), rel=1e-9)
+    counts = [resolved_values(grams, [], D, s, 1e-4, up) for s in (1e-4, 1e-2, 1.0)]
+    assert up.sum() >= counts[0] > counts[1] > counts[2] > 0
+    assert counts[0] > 3 * counts[2]
+    monkeypatch.setattr(verdict, "RESOLUTION_MAX_TEXELS", G.shape[0] - 1)  # a finer grid: not computed
+    assert resolved_values(grams, [], D, NOISE, 1e-4, up) is None
+    monkeypatch.undo()
+    v = _verdict(tr, photo, truth, clean)
+    sky = tr.solid_angle[up].sum()
+    assert v["resolved_values"] == pytest.approx(exact, rel=1e-6)
+    assert v["resolution_deg"] == pytest.approx(np.degrees(np.sqrt(sky / exact)), rel=1e-6)
+
+
 def test_grade_rules():
     assert grade({"chi2": 1.0, "uncertain_area": 0.1}) == ("green", [])
     g, why = grade({"chi2": 9.0, "uncertain_area": 0.1})
@@ -219,6 +248,9 @@ def test_grade_rules():
     assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
     assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
     assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
+    g, why = grade({"chi2": 1.0, "resolution_deg": 46.3, "resolved_values": 9.6})  # a blur of the sky
+    assert g == "yellow" and why[0].startswith("the photo resolves the sky to about 46 deg (10 independent")
+    assert grade({"chi2": 1.0, "resolution_deg": 25.0, "resolved_values": 32.0})[0] == "green"
     assert grade({"dark_sky_area": 0.01})[0] == "green"
     assert grade({"dark_sky_area": 0.05})[0] == "yellow"
     g, why = grade({"dark_sky_area": 0.2})

@@ -192,6 +192,12 @@ VERDICT_BELOW_YELLOW = 0.15
 VERDICT_BELOW_RED = 0.3
 #: brightest_seen: the brightest source's column norm over the median one; under a quarter: a poorly seen direction.
 VERDICT_SEEN_YELLOW = 0.25
+#: resolution_deg: the sky above the horizon resolved no finer than 30 deg (about 23 independent values over it,
+#: the trace of the verdict's model resolution matrix): a façade's or a window's scale; a canopy's texture or a
+#: lamp's sharpness in such a map is the prior's (a round value, not fitted: the hard suite's 96 targets range
+#: 12-52 deg, 14 above it, mostly the 2% targets of light objects on a dark plane seen from 20 deg; the next below
+#: it 29.8; bench/results.md, issue 22, session 44).
+VERDICT_RESOLUTION_YELLOW = 30.0
 #: pixels_rejected: more than one usable pixel in fifty dropped as an outlier (objcam.solvers.outliers).
 VERDICT_REJECTED_YELLOW = 0.02
 #: pixels_excluded: more than a tenth of A's pixels unusable.

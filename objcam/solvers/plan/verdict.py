@@ -32,6 +32,12 @@ No ground truth is used: every measure comes from the photo, the model and the s
   horizon, seen only past the support's edge; ``brightest_elevation_deg`` and ``brightest_seen``: the brightest
   source's elevation and its column norm over the median column norm (how strongly the photo sees that
   direction), both over the source's region, weighted by light (:func:`brightest_source`).
+* ``resolved_values`` and ``resolution_deg``: how many independent values of the sky above the horizon the photo
+  determines (the trace of the model resolution matrix of the same posterior, :func:`resolved_values`) and the
+  angle they resolve (the sky's solid angle shared among them). A property of the photo, the geometry and the
+  noise, not of the map: above ``VERDICT_RESOLUTION_YELLOW`` (30 deg) the map's finer detail, a canopy's texture
+  or a lamp's sharpness, is the prior's (yellow; it cannot tell a blurred canopy from a lamp the prior happens to
+  draw sharp, so never red).
 * ``pixels_excluded``: the share of A's pixels the solve could not use (saturated, invalid, hot);
   ``pixels_rejected``: the share of the usable ones it dropped as outliers (objcam.solvers.outliers). chi2 is over
   the pixels it fitted.
@@ -72,6 +78,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_MARGIN_YELLOW,
     VERDICT_REJECTED_YELLOW,
     VERDICT_RESIDUAL_RED,
+    VERDICT_RESOLUTION_YELLOW,
     VERDICT_SEEN_YELLOW,
     VERDICT_UNCERTAIN_RED,
     VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
@@ -156,6 +163,38 @@ def _prior(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, lr
     if P is not None:
         P.sum_duplicates()
     return diag, ls_abs, lr_abs, P
+
+
+#: the resolution (:func:`resolved_values`) up to this many texels (32 x 64's 2,048; ~0.07 s at 1,088 on one
+#: core): a finer grid (transport.env_height=auto) is one the coarse-to-fine test found the photo resolves, and
+#: its dense solve would cost seconds (64 x 128: ~1.6 s)
+RESOLUTION_MAX_TEXELS = 2304
+
+
+def resolved_values(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, lr_rel: float,
+                    up: np.ndarray) -> float | None:
+    """How many independent values of the sky above the horizon the photo determines: the trace over the texels
+    ``up`` (N,) bool of the model resolution matrix ``R = Q^-1 G`` of the verdict's posterior (G the data Gram
+    matrix, :func:`data_gram`; Q as in :func:`texel_uncertainty`: with the smoothness prior at the noise rule and
+    the ridge). R maps a true sky to what the quadratic solve recovers from its noise-free photo; its diagonal is
+    the share of a texel's own value in the estimate there (1: resolved; near 0: drawn from its neighbours by the
+    prior), so its trace counts the values the photo tells apart. None above RESOLUTION_MAX_TEXELS texels or
+    without texels above the horizon. Call with one BLAS thread."""
+    import scipy.linalg as sl
+
+    n = grams.shape[-1]
+    idx = np.flatnonzero(up)
+    if n > RESOLUTION_MAX_TEXELS or idx.size == 0:
+        return None
+    G = data_gram(grams, dropped)
+    _, ls_abs, lr_abs, P = _prior(grams, dropped, D, sigma_rel, lr_rel)
+    Q = G.copy()
+    if P is not None:
+        Q[P.row, P.col] += ls_abs * P.data
+    Q[np.diag_indices_from(Q)] += lr_abs
+    fac = sl.cho_factor(Q, lower=True, overwrite_a=True, check_finite=False)
+    X = sl.cho_solve(fac, G[:, idx], check_finite=False)  # (N, k): the columns idx of R
+    return float(np.trace(X[idx]))
 
 
 def row_mean_spread(grams: np.ndarray, dropped: list[np.ndarray], D, sigma_rel: float, sigma_abs: float,
@@ -317,6 +356,10 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
             rec["uncertainty_row_means"] = int(np.unique(rows[sol.profile]).size)
         unsure = s > lum
         sky = max(float(omega[up].sum()), 1e-300)
+        values = resolved_values(grams, dropped, D, sigma_rel, lr_rel, up)
+        if values is not None:  # the angular scale the photo resolves: the sky's solid angle shared among them
+            rec["resolved_values"] = values
+            rec["resolution_deg"] = float(np.degrees(np.sqrt(sky / max(values, 1e-12))))
         rec["uncertain_area"] = float(omega[unsure & up].sum() / sky)
         rec["uncertain_energy"] = float(energy[unsure].sum() / total)
         shown = s > above
@@ -421,6 +464,11 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
         yellow.append(f"{below:.0%} of the energy below the horizon")
     if poorly:
         yellow.append(f"the brightest light is in a poorly seen direction (elevation {el:.0f} deg)")
+    res = m.get("resolution_deg")
+    if res is not None and res > VERDICT_RESOLUTION_YELLOW:
+        yellow.append(f"the photo resolves the sky to about {res:.0f} deg ({m.get('resolved_values', 0):.0f} "
+                      "independent values above the horizon): finer detail, a texture or a lamp's sharpness, is "
+                      "the prior's")
     if m.get("pixels_rejected", 0.0) > VERDICT_REJECTED_YELLOW:
         yellow.append(f"{m['pixels_rejected']:.1%} of the pixels dropped as outliers (fireflies, hot pixels, glints "
                       "or geometry the model lacks; see residual.exr)")
