@@ -258,21 +258,24 @@ def brightest_region(env: np.ndarray, mask: np.ndarray | None = None, fraction: 
     return _wrapped_component(m & (lum >= fraction * peak), np.unravel_index(flat, lm.shape))
 
 
-def brightest_direction(env: np.ndarray, mask: np.ndarray | None = None, fraction: float = PEAK_FRACTION) -> np.ndarray:
-    """Unit world direction (3,) of the brightest source of a lat-long map (H, 2H[, 3]): the luminance x
-    solid-angle weighted mean direction of its :func:`brightest_region`. NaNs if no kept texel is brighter than 0.
-    """
-    region = brightest_region(env, mask, fraction)
-    if region is None:
-        return np.full(3, np.nan)
+def region_centre(env: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """Unit world direction (3,): the luminance x solid-angle weighted mean direction of the texels ``region``
+    (H, W) bool of a lat-long map (H, 2H[, 3]); the region's brightest texel's direction where the weights cancel."""
     grid = EnvGrid(region.shape[0])
-    wts = (luminance(env) * grid.solid_angles())[region]
+    lum = luminance(env)
+    wts = (lum * grid.solid_angles())[region]
     d = (grid.directions()[region] * wts[:, None]).sum(axis=0)
     nrm = np.linalg.norm(d)
     if nrm > 0:
         return d / nrm
-    lum = np.where(region, luminance(env), -np.inf)
-    return grid.directions()[np.unravel_index(int(np.argmax(lum)), lum.shape)]
+    return grid.directions()[np.unravel_index(int(np.argmax(np.where(region, lum, -np.inf))), lum.shape)]
+
+
+def brightest_direction(env: np.ndarray, mask: np.ndarray | None = None, fraction: float = PEAK_FRACTION) -> np.ndarray:
+    """Unit world direction (3,) of the brightest source of a lat-long map (H, 2H[, 3]): the
+    :func:`region_centre` of its :func:`brightest_region`. NaNs if no kept texel is brighter than 0."""
+    region = brightest_region(env, mask, fraction)
+    return np.full(3, np.nan) if region is None else region_centre(env, region)
 
 
 def angle_deg(u: np.ndarray, v: np.ndarray) -> float:

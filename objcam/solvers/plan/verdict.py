@@ -297,7 +297,7 @@ def brightest_source(env: np.ndarray, mask: np.ndarray | None, tr, seen: np.ndar
     along the horizon (a sunlit facade) whose brightest texel happens to lie a row below it is above the horizon
     (held out courtyard_r60: its brightest texel 16.7 at -2.8 deg beside 16.2 at +2.8, the area's centre 7 deg
     up); a sun put below it is below."""
-    from objcam.metrics import LUMA, brightest_direction, brightest_region
+    from objcam.metrics import LUMA, brightest_region, region_centre
 
     region = brightest_region(env, mask)
     lum = np.asarray(env, np.float64).reshape(-1, 3)[tr.texel_index] @ np.asarray(LUMA)
@@ -306,8 +306,7 @@ def brightest_source(env: np.ndarray, mask: np.ndarray | None, tr, seen: np.ndar
         jb = int(np.argmax(lum))
         return float(tr.directions[jb, 2]), float(seen[jb])
     w = np.clip(lum[inside], 0, None) * np.asarray(tr.solid_angle, np.float64)[inside]
-    centre = brightest_direction(env, mask)
-    return float(centre[2]), float(np.sum(w * seen[inside]) / max(float(w.sum()), 1e-300))
+    return float(region_centre(env, region)[2]), float(np.sum(w * seen[inside]) / max(float(w.sum()), 1e-300))
 
 
 def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
