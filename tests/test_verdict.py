@@ -220,6 +220,22 @@ def test_resolved_values_count_what_the_photo_tells_apart(toy, monkeypatch):
     assert v["resolution_deg"] == pytest.approx(np.degrees(np.sqrt(sky / exact)), rel=1e-6)
 
 
+def test_the_fit_only_verdict_skips_the_posterior(toy):
+    """solve.verdict=fit (the transport's kernel pilots): the same fit measures as the full verdict, without the
+    posterior's uncertainty and resolution."""
+    tr, truth, clean, photo = toy
+    y = photo.reshape(-1, 3)[tr.pixel_index].astype(np.float64)
+    d = TargetData(tr, photo, np.ones(photo.shape[:2], bool), y, np.ones(len(y), bool))
+    sol = TargetSolution(truth, None, clean, {})
+    full = assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4)
+    fit = assess(SimpleNamespace(noise_sigma=NOISE), d, sol, lr_rel=1e-4, full=False)
+    for key in ("chi2", "residual_fraction", "dark_sky_area", "dark_sky_light", "brightest_elevation_deg",
+                "brightest_seen", "below_horizon_energy"):
+        assert fit[key] == full[key], key
+    assert "uncertain_area" in full and "resolution_deg" in full
+    assert "uncertain_area" not in fit and "resolution_deg" not in fit
+
+
 def test_grade_rules():
     assert grade({"chi2": 1.0, "uncertain_area": 0.1}) == ("green", [])
     g, why = grade({"chi2": 9.0, "uncertain_area": 0.1})

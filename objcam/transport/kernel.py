@@ -72,7 +72,8 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     and the (M,) pixels the solve fitted). Without solve.sky_profile:
     the pilot judges the A, and the black rings a profile would hide are what asks for the narrow one; without
     solve.noise_fit: every candidate judged at the stated noise's prior (the transport's choice does not depend on
-    the solve's later weighting)."""
+    the solve's later weighting); with the verdict's fit measures only (solve.verdict=fit: its uncertainty and
+    resolution are not compared)."""
     from objcam.solvers.plan.capture import solve_capture
     from objcam.solvers.plan.params import SolveParams
     from objcam.solvers.plan.targets import TargetData
@@ -81,7 +82,7 @@ def pilot(scene, targets: list, tr, capture: Path) -> dict[str, dict]:
     data = {t.name: TargetData(tr, *target_rows(t.load_image(scene.folder), t.load_valid(scene.folder),
                                                 tr.downsample, tr.pixel_index)) for t in targets}
     sols = solve_capture(scene.model_copy(update={"targets": list(targets)}), data,
-                         SolveParams(sky_profile="off", noise_fit="off", sources="off"), capture)
+                         SolveParams(sky_profile="off", noise_fit="off", sources="off", verdict="fit"), capture)
     out = {}
     for t in targets:
         v = sols[t.name].info.get("verdict", {})

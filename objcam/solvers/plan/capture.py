@@ -68,7 +68,7 @@ def with_verdicts(scene, data: dict[str, TargetData], params: SolveParams,
     for name, sol in sols.items():
         t0 = time.perf_counter()
         with single_blas_thread():
-            v = assess(scene.target(name), data[name], sol, params.ridge)
+            v = assess(scene.target(name), data[name], sol, params.ridge, full=params.verdict == "full")
         v["seconds"] = round(time.perf_counter() - t0, 4)
         sol.info["verdict"] = v
     return sols

@@ -115,6 +115,11 @@ class SolveParams(BaseModel):
         "curvature of their profile in elevation added to the prior, and no source or rim left darker than its "
         "row's sky; 'off': the map as solved. "
         "Measured: bench/results.md, issues 22 and 28, sessions 29, 31, 33, 36 and 37")
+    verdict: Literal["full", "fit"] = Field(
+        "full", description="'full': every measure of the verdict (objcam.solvers.plan.verdict); 'fit': only the "
+        "fit's (chi2, the residual, the black sky, the brightest source, the energy below the horizon), without "
+        "the posterior's uncertainty and resolution (~0.1 s a target): what the transport's texel-kernel choice "
+        "compares its pilot solves by")
     noise_fit: Literal["auto", "off"] = Field(
         "auto", description="known albedo, prior=edges, ls from the noise: 'auto': when the edge solve's residual is "
         "significantly below the stated (or estimated) noise (chi-squared per value under 1 - unknowns per channel / "

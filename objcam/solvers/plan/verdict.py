@@ -309,9 +309,10 @@ def brightest_source(env: np.ndarray, mask: np.ndarray | None, tr, seen: np.ndar
     return float(region_centre(env, region)[2]), float(np.sum(w * seen[inside]) / max(float(w.sum()), 1e-300))
 
 
-def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
+def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float, full: bool = True) -> dict:
     """The verdict record of one target (solve.json's ``verdict``): ``grade``, ``reasons`` (one line each, the
-    worst first) and the measures above."""
+    worst first) and the measures above; ``full`` False: without the posterior's (the uncertainty's and the
+    resolution's), for a caller that compares fits only (solve.verdict=fit)."""
     tr, y = d.transport, d.y
     use = d.use if sol.rejected is None else d.use & ~sol.rejected  # the pixels the solve fitted
     env = sol.fine[0] if sol.fine is not None else sol.envmap  # A's own grid
@@ -339,6 +340,7 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float) -> dict:
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(up_b, -1, 1))))
     if sigma_rel:
         rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
+    if sigma_rel and full:
         D = solvers.difference_operator(tr.grid, tr.texel_index)
         # what a viewer sees: texels whose spread exceeds both their value and a fiftieth of the map's
         # 99th-percentile brightness (the tonemap's white): a dark, uncertain but flat background passes
