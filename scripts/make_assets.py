@@ -14,7 +14,9 @@ v = 1 at the top row of the file: exactly the standard lat-long file convention 
 maps are read onto objcam's internal grid (objcam.envmap.read_latlong: a whole-texel column permutation, no
 resampling), area-averaged there (objcam.envmap.area_downsample, solid-angle exact) to 128 x 256 and written back
 in the standard convention (objcam.envmap.write_latlong) as a float32 zip EXR (pixels are reproducible bit for bit; OpenImageIO stamps a capture date in the header). Bundled:
-forest, courtyard, sunset, city, sunrise; the package also has interior, night and studio (not shipped).
+forest, courtyard, sunset, city, sunrise; the package's other three, interior, night and studio, are not objcam's:
+they are written the same way into bench/hard/envmaps/ for the hard suite's held-out design (bench/hard/design.py),
+lighting objcam was never tuned on.
 
 Bunny: the Stanford bunny (Stanford 3D Scanning Repository) as shipped with pymeshlab's test data
 (pymeshlab/tests/sample_meshes/bunny.obj: closed, 2-manifold, 56k faces, y up), decimated by quadric edge
@@ -39,7 +41,9 @@ sys.path.insert(0, str(ROOT))
 from objcam.envmap import area_downsample, read_latlong, write_latlong  # noqa: E402
 
 ASSETS = ROOT / "objcam" / "assets"
-ENVMAPS = ("forest", "courtyard", "sunset", "city", "sunrise")  # also there: interior, night, studio
+ENVMAPS = ("forest", "courtyard", "sunset", "city", "sunrise")
+HELD_OUT = ("interior", "night", "studio")  # the bench's held-out lighting, not objcam's assets
+HELD_OUT_DIR = ROOT / "bench" / "hard" / "envmaps"
 HEIGHT = 128
 BUNNY_FACES = 8000
 
@@ -53,13 +57,14 @@ def fetch_blender_data(tmp: Path) -> Path:
 
 def make_envmaps(blender_root: Path) -> None:
     src = blender_root / "usr/share/blender/datafiles/studiolights/world"
-    (ASSETS / "envmaps").mkdir(parents=True, exist_ok=True)
-    for name in ENVMAPS:
+    for name in ENVMAPS + HELD_OUT:
+        folder = HELD_OUT_DIR if name in HELD_OUT else ASSETS / "envmaps"
+        folder.mkdir(parents=True, exist_ok=True)
         env = read_latlong(src / f"{name}.exr")[..., :3].astype(np.float64)
         env = np.nan_to_num(np.maximum(env, 0.0))
         small = area_downsample(env, HEIGHT).astype(np.float32)
-        write_latlong(ASSETS / "envmaps" / f"{name}.exr", small)
-        (ASSETS / "envmaps" / f"{name}.exr").chmod(0o644)  # atomic writes create 0600 files
+        write_latlong(folder / f"{name}.exr", small)
+        (folder / f"{name}.exr").chmod(0o644)  # atomic writes create 0600 files
         print(f"{name}: {env.shape} -> {small.shape}, mean {small.mean(axis=(0, 1))}")
 
 

@@ -309,3 +309,67 @@ def test_held_out_rotations_keep_the_design_and_turn_every_lighting():
     assert not {b.rotation_deg for b in held} & set(ROTATIONS)
     with pytest.raises(ValueError, match="one per geometry slot"):
         cases(rotations=(60.0, 200.0))
+
+
+def test_the_held_out_design_shares_nothing_with_the_suite_but_its_families():
+    """`--design held-out`: every object, camera elevation, albedo pair, rotation and lighting other than the
+    suite's (so no rule chosen on the suite was chosen on it), crossed the same way: each lighting's three
+    rotations meet all three objects and all three elevations."""
+    from bench.hard.design import HELD_OUT, SUITE, cases
+
+    suite, held = cases(), cases(design=HELD_OUT)
+    assert len(held) == 3 * len(HELD_OUT.lightings) == 42
+    geos = lambda cs, f: {f(c) for c in cs}  # noqa: E731
+    for f in (lambda c: c.geometry.object, lambda c: c.geometry.elevation_deg, lambda c: c.rotation_deg,
+              lambda c: (c.geometry.albedo_object, c.geometry.albedo_support), lambda c: c.light.name):
+        assert not geos(suite, f) & geos(held, f)
+    assert {c.light.family for c in held} - {c.light.family for c in suite} == {"overcast"}
+    for light in HELD_OUT.lightings:
+        mine = [c for c in held if c.light == light]
+        assert {c.geometry.object for c in mine} == set(HELD_OUT.objects)
+        assert {c.geometry.elevation_deg for c in mine} == set(HELD_OUT.elevations)
+    assert SUITE.rotations == (0.0, 137.0, 251.0)
+
+
+@pytest.mark.parametrize("name", ["knot", "mug", "sphere"])
+def test_held_out_objects_rest_on_the_plane_with_outward_faces(name):
+    """The generated objects: 8 cm across or tall, resting on z = 0, faces wound outward (the signed volume of
+    the closed knot and sphere is their solid's; the mug's handle is an open tube whose ends hide in the wall).
+    A mesh wound inward, the test of the test, has the opposite volume."""
+    from bench.hard.objects import make_object
+
+    v, f = make_object(name)
+    assert np.isfinite(v).all() and v[:, 2].min() == pytest.approx(0.0, abs=1e-9)
+    assert np.ptp(v, axis=0).max() == pytest.approx(0.08, rel=0.01)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    vol = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
+    expect = {"sphere": 4 / 3 * math.pi * 0.04**3,  # the tube: length x cross-section
+              "knot": float(np.linalg.norm(np.diff(v[::16][: len(v) // 16], axis=0, append=v[:1]), axis=1).sum())
+              * math.pi * 0.004**2,
+              "mug": math.pi * (0.024**2 * 0.08 - 0.020**2 * 0.074)}[name]
+    assert vol == pytest.approx(expect, rel=0.1 if name != "knot" else 0.25)
+    a, b, c = v[f[:, 0]], v[f[:, 2]], v[f[:, 1]]
+    assert float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0 < 0
+
+
+def test_held_out_lightings_hold_what_they_say():
+    """The held-out lightings the suite has no twin of: the overcast sky falls from the zenith to a third of it at
+    the horizon whatever the rotation; the tall window sits where its knobs put it; the unbundled HDRIs load,
+    non-negative, turned by the rotation."""
+    from bench.hard.lighting import held_out_lightings
+
+    light = {x.name: x for x in held_out_lightings()}
+    env, _ = make_envmap(light["overcast"], 60.0)
+    assert np.array_equal(env, make_envmap(light["overcast"], 200.0)[0])
+    assert env[0, :, 0].mean() == pytest.approx(1.0, abs=0.01)
+    assert env[127, :, 0].mean() == pytest.approx(1 / 3, abs=0.01)
+    win, _ = make_envmap(light["window2"], 0.0)
+    lum = win[..., 1]
+    rows, cols = np.nonzero(lum > 1.0)
+    elev = 90.0 - 180.0 * (rows + 0.5) / 256
+    az = 360.0 * (cols + 0.5) / 512
+    assert 10 <= elev.min() < 11 and 59 < elev.max() <= 60 and 68 < az.min() < 69 and 91 < az.max() < 92
+    for name in ("interior", "night", "studio"):
+        a, rot = make_envmap(light[name], 60.0)
+        b, _ = make_envmap(light[name], 0.0)
+        assert a.shape == (256, 512, 3) and a.min() >= 0 and np.array_equal(a, np.roll(b, int(rot / 360 * 512), 1))

@@ -42,7 +42,7 @@ def test_the_readme_demo_figures_hold(tmp_path):
     m = json.loads((cap / "objcam" / "evaluate" / "metrics.json").read_text())["t0"]
     assert m["ssim"] == pytest.approx(claims["ssim"], abs=SSIM_TOL), m
     assert m["relative_rmse"] == pytest.approx(claims["relative_rmse"], abs=RMSE_TOL), m
-    assert m["brightest_angle_deg"] <= claims["angle"], m  # measured 0.605, 0.637, 1.97 deg (the sun in its own texel)
+    assert m["brightest_angle_deg"] <= claims["angle"], m  # measured 0.607, 0.638, 1.97 deg (the sun in its own texel)
     # a test of the test: the truth's own flat and row-mean maps (scored by evaluate on the same mask) fall outside
     # the tolerance (measured SSIM 0.15 and 0.24)
     for b in ("constant", "row_mean"):

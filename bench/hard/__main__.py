@@ -1,6 +1,7 @@
 """``make bench BENCH=hard``: the hard-case suite (issue 22), runnable as ``python -m bench.hard``.
 
-    python -m bench.hard [--quick] [--write] [--out bench/out/hard] [--size 128] [--spp 2048] [--max-depth 4]
+    python -m bench.hard [--quick] [--write] [--out bench/out/hard] [--size 128] [--spp 2048] [--max-depth -1]
+    python -m bench.hard --design held-out --out bench/out/held-out [--write]
 
 Renders every case of bench/hard/design.py with the suite's own Mitsuba scene (bench/hard/scene.py: path tracing,
 interreflections to ``max_depth``, a multi-jittered sampler), writes one known-geometry capture per geometry
@@ -9,7 +10,9 @@ configuration (bench/hard/capture.py), runs objcam on it with default parameters
 (bench/hard/score.py). Renders are cached in OUT/renders and objcam's stages in each capture, so a rerun only
 redoes what changed. A capture the scene stage refuses for negative pixels is rerun with the targets that have
 none, and the others are recorded as refused (never clipped). ``--write`` puts the block into bench/results.md
-and the raw rows into bench/hard_rows.json (``--quick`` into bench/hard_rows_quick.json).
+and the raw rows into bench/hard_rows.json (``--quick`` into bench/hard_rows_quick.json). ``--design held-out``:
+the held-out design (other objects, cameras, albedos, rotations and lightings; bench/hard/design.py), its block
+and rows apart (bench/hard_held_out_rows.json).
 """
 
 from __future__ import annotations
@@ -24,13 +27,14 @@ import time
 from pathlib import Path
 
 from bench.hard.capture import cached_render, camera_for, log, write_capture
-from bench.hard.design import NOISES, ROTATIONS, cases
+from bench.hard.design import DESIGNS, NOISES, cases
 from bench.hard.objects import make_object, write_ply
 from bench.hard.report import markdown
 from bench.hard.score import target_row
 from bench.sections import invocation, write_section
 
 TITLE = "Hard cases (issue 22)"
+HELD_OUT_TITLE = "Hard cases held out: objects, cameras, albedos and lighting the suite never had (issue 22)"
 REFUSED = "the scene stage refuses negative pixels (zero-mean noise kept, never clipped)"
 
 
@@ -127,7 +131,8 @@ def regenerate(args) -> int:
     text = markdown(rows, header, NOISES)
     print(text)
     if args.write:
-        write_section("hard", text, TITLE, args.results)
+        held = d["label"] == "held-out"
+        write_section("hard_held_out" if held else "hard", text, HELD_OUT_TITLE if held else TITLE, args.results)
     return 0
 
 
@@ -138,10 +143,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=Path("bench/results.md"))
     ap.add_argument("--size", type=int, default=None, help="image side, pixels (default 128; quick 64)")
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel (default 2048; quick 256)")
-    ap.add_argument("--max-depth", type=int, default=4, help="path length (>= 3: interreflections)")
+    ap.add_argument("--max-depth", type=int, default=-1,
+                    help="Mitsuba's path depth: -1 (default) every bounce, as in a photo; >= 3 truncates the "
+                         "interreflections (the suite was rendered at 4 before session 45: two bounces, fewer than "
+                         "objcam's A models)")
     ap.add_argument("--only", default="", help="comma-separated lighting names (development)")
     ap.add_argument("--rotations", default="", help="three comma-separated angles in degrees instead of the "
-                    "design's 0,137,251: a held-out check (e.g. 60,200,310; use its own --out)")
+                    "design's (the suite's 0,137,251): a held-out check (e.g. 60,200,310; use its own --out)")
+    ap.add_argument("--design", choices=sorted(DESIGNS), default="suite",
+                    help="suite (default) or held-out: other objects, cameras, albedos, rotations and lightings, "
+                         "none used to choose a parameter (use its own --out)")
     ap.add_argument("--write", action="store_true", help="write the block and the raw rows")
     ap.add_argument("--from-rows", type=Path, default=None,
                     help="regenerate the block from a rows JSON this script wrote (bench/hard_rows.json); no run")
@@ -157,14 +168,18 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OBJCAM_QUIET", "1")
     size = args.size or (64 if args.quick else 128)
     spp = args.spp or (256 if args.quick else 2048)
-    rotations = tuple(float(a) for a in args.rotations.split(",")) if args.rotations else ROTATIONS
-    todo = [c for c in cases(args.quick, rotations) if not args.only or c.light.name in args.only.split(",")]
+    max_depth = args.max_depth
+    design = DESIGNS[args.design]
+    if args.quick and design.name != "suite":
+        ap.error("--quick is the suite's development subset")
+    rotations = tuple(float(a) for a in args.rotations.split(",")) if args.rotations else None
+    todo = [c for c in cases(args.quick, rotations, design) if not args.only or c.light.name in args.only.split(",")]
     groups: dict = {}
     for c in todo:
         groups.setdefault(c.geometry, []).append(c)
-    label = "quick" if args.quick else "full"
+    label = "quick" if args.quick else "full" if design.name == "suite" else design.name
     log(f"hard cases ({label}): {len(todo)} renders x {len(NOISES)} noise levels on {len(groups)} geometries, "
-        f"{size} px, {spp} spp, max_depth {args.max_depth}")
+        f"{size} px, {spp} spp, max_depth {max_depth}")
     t_start = time.perf_counter()
     rows, render_s = [], 0.0
     for gi, (geo, group) in enumerate(groups.items()):
@@ -174,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         camera = camera_for(geo, size)
         renders = {}
         for c in group:
-            renders[c.name] = cached_render(c, mesh, camera, args.out / "renders", spp, args.max_depth)
+            renders[c.name] = cached_render(c, mesh, camera, args.out / "renders", spp, max_depth)
             render_s += renders[c.name]["seconds"] * (not renders[c.name]["cached"])
             log(f"  [{gi + 1}/{len(groups)}] {geo.key}: {c.name} rendered in {renders[c.name]['seconds']:.1f} s"
                 f"{' (cached)' if renders[c.name]['cached'] else ''}, render noise {100 * renders[c.name]['mc']:.2f}%")
@@ -193,16 +208,18 @@ def main(argv: list[str] | None = None) -> int:
                         for r in ok) + (f"; {len(got) - len(ok)} not solved" if len(got) > len(ok) else ""))
     wall = time.perf_counter() - t_start
     made_by = invocation("bench.hard", argv)
-    header = header_lines(label, len(todo), len(groups), len(rows), size, spp, args.max_depth, wall, render_s, made_by)
+    header = header_lines(label, len(todo), len(groups), len(rows), size, spp, max_depth, wall, render_s, made_by)
     text = markdown(rows, header, NOISES)
     print(text)
-    data = json.dumps({"label": label, "size": size, "spp": spp, "max_depth": args.max_depth, "wall_seconds": wall,
+    data = json.dumps({"label": label, "size": size, "spp": spp, "max_depth": max_depth, "wall_seconds": wall,
                        "render_seconds": render_s, "made_by": made_by, "rows": rows}, indent=1, default=float)
     tag = "" if not args.sets else "-" + hashlib.sha1(" ".join(args.sets).encode()).hexdigest()[:8]
     (args.out / f"rows_{label}{tag}.json").write_text(data)
     if args.write:
-        write_section("hard", text, TITLE, args.results)
-        args.results.with_name("hard_rows" + ("_quick" if args.quick else "") + ".json").write_text(data)
+        section, title, suffix = ("hard", TITLE, "_quick" if args.quick else "") if design.name == "suite" else \
+            ("hard_held_out", HELD_OUT_TITLE, "_held_out")
+        write_section(section, text, title, args.results)
+        args.results.with_name(f"hard_rows{suffix}.json").write_text(data)
     return 0
 
 

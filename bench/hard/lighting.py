@@ -17,16 +17,21 @@ import numpy as np
 HEIGHT = 256  # truth grid: 0.7 deg texels resolve a 2 deg lamp; 8 x the solve's 32 rows (exact area average)
 HDRIS = ("forest", "courtyard", "city", "sunrise", "sunset")
 ASSETS = Path(__file__).resolve().parents[2] / "objcam" / "assets" / "envmaps"
+#: the held-out design's HDRIs: the other three of Blender's CC0 worlds, which objcam does not bundle
+#: (bench/hard/envmaps/, made by scripts/make_assets.py)
+HELD_OUT_HDRIS = ("interior", "night", "studio")
+HELD_OUT_ASSETS = Path(__file__).resolve().parent / "envmaps"
 
 
 @dataclass(frozen=True)
 class Lighting:
-    """One lighting condition: ``family`` (lamp, room2, room5, window, sun, hdri), a ``name`` and its knobs."""
+    """One lighting condition: ``family`` (lamp, room, window, sun, overcast, hdri), a ``name`` and its knobs."""
 
     family: str
     name: str
     elevation_deg: float = 0.0  # the lamp's or the sun's
     hdri: str = ""
+    window: tuple[float, float, float, float] = (5.0, 35.0, 40.0, 200.0)  # elevations, width, azimuth (degrees)
 
 
 def lightings() -> list[Lighting]:
@@ -36,6 +41,18 @@ def lightings() -> list[Lighting]:
     out += [Lighting("room", "room2"), Lighting("room", "room5"), Lighting("window", "window"),
             Lighting("sun", "sun8", 8.0), Lighting("sun", "sun55", 55.0)]
     out += [Lighting("hdri", h, hdri=h) for h in HDRIS]
+    return out
+
+
+def held_out_lightings() -> list[Lighting]:
+    """The held-out design's 14 lighting conditions (bench/hard/design.py): the suite's families with knobs it
+    never had (lamps at 2, 6, 20, 45 and 75 degrees, rooms of 3 and 4 lamps, a tall narrow window, suns at 20 and
+    40 degrees), an overcast sky (no source at all) and the three HDRIs objcam does not bundle."""
+    out = [Lighting("lamp", f"lamp{e:g}", float(e)) for e in (2, 6, 20, 45, 75)]
+    out += [Lighting("room", "room3"), Lighting("room", "room4"),
+            Lighting("window", "window2", window=(10.0, 60.0, 24.0, 80.0)),
+            Lighting("sun", "sun20", 20.0), Lighting("sun", "sun40", 40.0), Lighting("overcast", "overcast")]
+    out += [Lighting("hdri", h, hdri=h) for h in HELD_OUT_HDRIS]
     return out
 
 
@@ -89,7 +106,8 @@ def file_columns(env: np.ndarray) -> np.ndarray:
 def _hdri(name: str, rotation_deg: float, h: int) -> tuple[np.ndarray, float]:
     from objcam.image_io import read_exr
 
-    env = file_columns(read_exr(ASSETS / f"{name}.exr")[..., :3].astype(np.float64))
+    folder = HELD_OUT_ASSETS if name in HELD_OUT_HDRIS else ASSETS
+    env = file_columns(read_exr(folder / f"{name}.exr")[..., :3].astype(np.float64))
     f = h // env.shape[0]
     env = np.repeat(np.repeat(env, f, axis=0), f, axis=1)  # box texels: exact
     k = int(round(rotation_deg / 360.0 * env.shape[1]))
@@ -104,10 +122,13 @@ def make_envmap(light: Lighting, rotation_deg: float, h: int = HEIGHT) -> tuple[
       (0.05 at the zenith, 0.03 at the horizon, ground 0.01);
     - room2 / room5: a dark room (walls 0.01, floor 0.005) with 2 or 5 lamps of radius 3 degrees whose radiance
       spans 1e3 to 1e5 x the walls (fixed seeds), at elevations 12-70 degrees;
-    - window: walls 0.05, a 40 x 30 degree window from 5 to 35 degrees elevation of radiance 5 (100 : 1);
+    - window: walls 0.05, a window of radiance 5 (100 : 1), by default 40 degrees wide from 5 to 35 degrees
+      elevation, centred at azimuth 200 + rotation (``Lighting.window``);
     - sun: a blue sky (zenith 0.6 0.8 1.2, horizon 1.0 1.0 1.1), ground 0.3, and a 0.5-degree-radius sun of
       1e4 x the sky's mean radiance at 8 or 55 degrees elevation;
-    - hdri: the bundled HDRI, upsampled by repetition, rotated by whole columns.
+    - overcast: the CIE overcast sky, 1 at the zenith falling to 1/3 at the horizon ((1 + 2 sin elevation) / 3),
+      ground 0.2: no source, no azimuthal detail (the same for every rotation);
+    - hdri: the bundled HDRI (or a held-out one), upsampled by repetition, rotated by whole columns.
     """
     rot = float(rotation_deg)
     if light.family == "hdri":
@@ -130,13 +151,19 @@ def make_envmap(light: Lighting, rotation_deg: float, h: int = HEIGHT) -> tuple[
         env = _sky(h, (0.05, 0.05, 0.05), (0.05, 0.05, 0.05), (0.03, 0.03, 0.03))
         theta, phi = _grid(h)
         elev = 90.0 - np.degrees(theta)
-        daz = (np.degrees(phi) - (200.0 + rot) + 180.0) % 360.0 - 180.0
-        win = (elev >= 5) & (elev <= 35) & (np.abs(daz) <= 20)
+        lo, hi, width, az = light.window
+        daz = (np.degrees(phi) - (az + rot) + 180.0) % 360.0 - 180.0
+        win = (elev >= lo) & (elev <= hi) & (np.abs(daz) <= width / 2)
         env[win] = (5.0, 5.0, 5.2)
     elif light.family == "sun":
         env = _sky(h, (0.6, 0.8, 1.2), (1.0, 1.0, 1.1), (0.3, 0.3, 0.3))
         sky_mean = float(env[: h // 2].mean())
         add_disc(env, light.elevation_deg, 120.0 + rot, 0.5, (1e4 * sky_mean,) * 3)
+    elif light.family == "overcast":
+        theta, _ = _grid(h)
+        up = np.clip(np.cos(theta), 0, 1)[..., None]  # sin elevation
+        env = np.where(theta[..., None] < np.pi / 2, np.array([1.0, 1.0, 1.05]) * (1 + 2 * up) / 3,
+                       np.array([0.2, 0.2, 0.2]))
     else:
         raise ValueError(f"unknown lighting family {light.family!r}")
     return env.astype(np.float32), rot

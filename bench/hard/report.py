@@ -7,7 +7,7 @@ import numpy as np
 
 from bench.hard.score import BANDS
 
-FAMILIES = ("lamp", "room", "window", "sun", "hdri")
+FAMILIES = ("lamp", "room", "window", "sun", "overcast", "hdri")
 
 
 def _f(v, fmt=".3f") -> str:

@@ -2,8 +2,9 @@
 
 The radiance leaving a diffuse surface point q under texel j alone, ``L_j(q) = rho_q / pi int_j V max(0, n.w)``,
 is what the direct model computes for a pixel. So the direct light of a set of surface *nodes* (every face of
-the object, or clusters of faces beyond ``max_mesh_nodes``; on a plane support, the cells of a polar grid around
-the object; on any other support, its faces or face clusters) is
+the object, or clusters of faces beyond ``max_mesh_nodes``, long faces split first: objcam.transport.mesh_nodes;
+on a plane support, the cells of a polar grid around the object; on any other support, its faces or face
+clusters) is
 one more :class:`objcam.transport.direct.DirectModel` run: E (S, N) for S nodes, each averaged over a few points
 spread over its area, with the direct model's stratified shadow rays.
 
@@ -46,6 +47,7 @@ from objcam.dr_memory import padded
 from objcam.scene import use_mitsuba
 from objcam.threads import cores, parallel_map
 from objcam.transport.geometry import PixelSamples, SampleParts, SceneGeometry
+from objcam.transport.mesh_nodes import FaceSplit, face_clusters, mesh_nodes
 from objcam.transport.pixels import sobol4, to_unit
 
 #: rays per Mitsuba launch of the gather
@@ -121,13 +123,15 @@ def plane_grid(geo: SceneGeometry, rings_per_octave: int, sectors: int) -> Plane
 
 @dataclass
 class Nodes:
-    """The surface nodes: the object's faces (or clusters of them) first, then the support's (plane cells, or
-    faces or face clusters). ``samples`` holds each live node's points (a PixelSamples, one 'pixel' per live node); ``live`` maps a
-    node id to its row in ``samples`` (-1: no point of it exists, e.g. a cell under the object)."""
+    """The surface nodes: the object's faces (or parts or clusters of them) first, then the support's (plane
+    cells, or faces or face clusters). ``samples`` holds each live node's points (a PixelSamples, one 'pixel' per
+    live node); ``live`` maps a node id to its row in ``samples`` (-1: no point of it exists, e.g. a cell under
+    the object)."""
 
     n_object: int
     n_support: int
-    object_face_node: np.ndarray  # (F_object,) node of each object face
+    object_face_node: np.ndarray  # (T,) node of each of the object's sub-triangles (its faces, if none is split)
+    object_split: FaceSplit  # the object's faces split into those sub-triangles
     support_face_node: np.ndarray | None  # (F_support,) node (after the object's) of each support face; None: grid
     grid: PlaneGrid | None
     samples: PixelSamples
@@ -153,24 +157,6 @@ def _face_normals(mesh) -> tuple[np.ndarray, np.ndarray]:
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     return tri, n
-
-
-def face_clusters(tri: np.ndarray, normals: np.ndarray, max_nodes: int) -> tuple[np.ndarray, int]:
-    """(F,) node of each face and the node count: one node per face up to ``max_nodes`` faces; beyond, faces are
-    grouped by the cubic cell of their centroid (cell side from the surface area, so about max_nodes / 2 cells
-    are occupied) and the axis their normal is closest to (6 buckets, so a node never mixes opposite sides)."""
-    f = tri.shape[0]
-    if f <= max_nodes:
-        return np.arange(f), f
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    side = np.sqrt(area.sum() / max(1, max_nodes // 2))
-    c = tri.mean(axis=1)
-    cell = np.floor((c - c.min(axis=0)) / side).astype(np.int64)
-    ax = np.argmax(np.abs(normals), axis=1)
-    bucket = 2 * ax + (normals[np.arange(f), ax] < 0)
-    key = np.concatenate([cell, bucket[:, None]], axis=1)
-    _, node = np.unique(key, axis=0, return_inverse=True)
-    return node.ravel(), int(node.max()) + 1
 
 
 def _node_points(tri: np.ndarray, normals: np.ndarray, face_node: np.ndarray, n_nodes: int, u: np.ndarray,
@@ -205,10 +191,10 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     u, v = to_unit(pts[:, 0]), to_unit(pts[:, 1])
     w = to_unit(pts[:, 2])
     tri_o, n_o = _face_normals(geo.object_mesh)
-    obj_node, n_obj = face_clusters(tri_o, n_o, s.max_mesh_nodes)
-    p_obj, nn_obj, f_obj = _node_points(tri_o, n_o, obj_node, n_obj, u, v, w)
+    split, obj_node, n_obj = mesh_nodes(tri_o, n_o, s.max_mesh_nodes)  # long faces split (objcam.transport.mesh_nodes)
+    p_obj, nn_obj, f_sub = _node_points(split.tri, n_o[split.parent], obj_node, n_obj, u, v, w)
     shape_ids = [np.full(n_obj, geo.object_id)]
-    prims = [f_obj]
+    prims = [split.parent[f_sub]]
     normals = [nn_obj]
     points = [p_obj]
     grid = None
@@ -283,7 +269,8 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
                            np.where(hit[..., None], nrm, 0.0)[alive], r[alive], on_obj[alive], unknown[alive],
                            (-nrm)[alive])
     nh = np.maximum(samples.hit.sum(axis=1), 1)[:, None]
-    return Nodes(n_obj, n_nodes - n_obj, obj_node, sup_node, grid, samples, live, samples.rho.sum(axis=1) / nh)
+    return Nodes(n_obj, n_nodes - n_obj, obj_node, split, sup_node, grid, samples, live,
+                 samples.rho.sum(axis=1) / nh)
 
 
 def _frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -474,12 +461,15 @@ class Gather:
             b = min(pos.shape[0], a + per)
             ray, wt = self._rays(pos[a:b], nrm[a:b], keys[a:b], R, on_plane[a:b])  # lane = receiver * R + ray
             active = wt > 0
-            si = self.geo.mi_scene.ray_intersect(ray, active)
+            # ray_intersect in its two steps: the first's barycentric coordinates place a hit in its split face
+            pi = self.geo.mi_scene.ray_intersect_preliminary(ray, active=active)
+            si = pi.compute_surface_interaction(ray, active=active)
             valid = si.is_valid()
             shp = dr.reinterpret_array(mi.UInt32, si.shape)
             # only the front side of a surface reflects (Mitsuba's diffuse BSDF is one-sided)
             front = valid & (dr.dot(si.n, ray.d) < 0)
-            dr.eval(front, shp, si.prim_index, si.p, wt)
+            split = nodes.object_split.any_split
+            dr.eval(front, shp, si.prim_index, si.p, wt, *((pi.prim_uv,) if split else ()))
             wt_np = np.asarray(wt)
             hit = np.flatnonzero(np.asarray(front, bool))  # lanes
             self.stats.rays += int(np.count_nonzero(wt_np > 0))
@@ -487,7 +477,11 @@ class Gather:
             prim = np.asarray(si.prim_index, np.int64)[hit]
             node = np.full(sid.size, -1, np.int64)
             on_o = sid == self.geo.object_id
-            node[on_o] = nodes.object_face_node[prim[on_o]]
+            sub = prim[on_o]
+            if split:  # the sub-triangle the hit lies in
+                uv = np.asarray(pi.prim_uv)[:, hit[on_o]]
+                sub = nodes.object_split.locate_uv(sub, uv[0], uv[1])
+            node[on_o] = nodes.object_face_node[sub]
             on_s = sid == self.geo.support_id
             if nodes.grid is not None:
                 p = np.asarray(si.p)[:2, hit[on_s]].T.astype(np.float64)
