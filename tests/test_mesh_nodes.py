@@ -126,3 +126,35 @@ def test_a_cups_floor_gathers_the_light_of_its_walls_foot(cup_scene, monkeypatch
         ratio[name] = cols.sum(axis=0) / ref.sum(axis=0)
     assert np.abs(ratio["split"] - 1).max() < 0.06, ratio
     assert np.abs(ratio["whole faces"] - 1).max() > 0.15, ratio
+
+
+def test_node_points_inside_a_touching_part_drop_out(tmp_path):
+    """A post standing on a slab (the post's foot coplanar with the slab's top, as a CAD export's parts touch):
+    the gather's node points on the slab's top under the post lie inside the post, where no light reaches; they
+    must drop out (the short probe onto the slab alone accepts them: without the outward test this fails)."""
+    from bench.hard.objects import box
+    from objcam.scene import AlbedoValue, MeshData, SceneDescription, make_plane
+    from objcam.transport.gather import GatherSettings, surface_nodes
+    from objcam.transport.geometry import SceneGeometry
+
+    slab_v, slab_f = box((-0.03, -0.03, 0.0), (0.03, 0.03, 0.01))
+    post_v, post_f = box((-0.02, -0.02, 0.01), (0.0, 0.0, 0.06))  # a 2 x 2 cm foot on the 6 x 6 cm top
+    v = np.concatenate([slab_v, post_v]).astype(np.float32)
+    f = np.concatenate([slab_f, post_f + len(slab_v)]).astype(np.uint32)
+    MeshData(v, f).save(tmp_path / "object.npz")
+    make_plane(2.0).save(tmp_path / "support.npz")
+    desc = SceneDescription(object_mesh="object.npz", support_mesh="support.npz", support_is_plane=True,
+                            albedo_object=AlbedoValue(rgb=(0.8, 0.8, 0.8)),
+                            albedo_support=AlbedoValue(rgb=(0.3, 0.3, 0.3)))
+    geo = SceneGeometry.load(desc, tmp_path, env_height=8)
+    nodes = surface_nodes(geo, GatherSettings())
+    n_live = int((nodes.live[: nodes.n_object] >= 0).sum())
+    pts = nodes.samples.pos[:n_live][nodes.samples.hit[:n_live]]
+    nrm = nodes.samples.normal[:n_live][nodes.samples.hit[:n_live]]
+    top = (np.abs(pts[:, 2] - 0.01) < 1e-4) & (nrm[:, 2] > 0.9)  # on the slab's top, facing up
+    under = top & (pts[:, 0] > -0.0199) & (pts[:, 0] < -0.0001) & (pts[:, 1] > -0.0199) & (pts[:, 1] < -0.0001)
+    assert top.sum() > 20 and not under.any(), (top.sum(), under.sum())
+    # the test's test: the slab's top under the post is made of nodes' parts (so points were drawn there)
+    c = nodes.object_split.tri.mean(axis=1)
+    foot = (c[:, 0] > -0.02) & (c[:, 0] < 0) & (c[:, 1] > -0.02) & (c[:, 1] < 0)
+    assert (foot & (np.abs(c[:, 2] - 0.01) < 1e-6)).sum() > 50

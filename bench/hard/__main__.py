@@ -1,7 +1,7 @@
 """``make bench BENCH=hard``: the hard-case suite (issue 22), runnable as ``python -m bench.hard``.
 
     python -m bench.hard [--quick] [--write] [--out bench/out/hard] [--size 128] [--spp 2048] [--max-depth -1]
-    python -m bench.hard --design held-out --out bench/out/held-out [--write]
+    python -m bench.hard --design held-out --out bench/out/hard-held-out [--write]
 
 Renders every case of bench/hard/design.py with the suite's own Mitsuba scene (bench/hard/scene.py: path tracing,
 interreflections to ``max_depth``, a multi-jittered sampler), writes one known-geometry capture per geometry

@@ -236,6 +236,14 @@ def surface_nodes(geo: SceneGeometry, s: GatherSettings) -> Nodes:
     want_sid = np.repeat(sid, k)
     want_prim = prim.ravel()
     hit &= (got_sid == want_sid) & ((want_prim < 0) | (got_prim == want_prim))
+    # a point where two parts touch (a post standing on a seat, coplanar faces) can land and still lie inside the
+    # other part: the first surface its outward ray meets is then seen from behind. It drops out like a hidden one
+    # (with one node per face such points were a sliver of a large face; in a small node they were half of it)
+    out = mi.Ray3f(mi.Point3f(*(padded(o[:, i]) for i in range(3))), mi.Vector3f(*(padded(-d[:, i]) for i in range(3))))
+    si_out = geo.mi_scene.ray_intersect(out)
+    inside = si_out.is_valid() & (dr.dot(si_out.n, out.d) > 0)
+    dr.eval(inside)
+    hit &= ~np.asarray(inside, bool)[: hit.size]
     pos = np.asarray(si.p, np.float64).T.reshape(n_nodes, k, 3)
     r = np.asarray(rho, np.float64).T.reshape(n_nodes, k, 3)
     if not (geo.desc.albedo_object.known and geo.desc.albedo_support.known):
