@@ -168,7 +168,6 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OBJCAM_QUIET", "1")
     size = args.size or (64 if args.quick else 128)
     spp = args.spp or (256 if args.quick else 2048)
-    max_depth = args.max_depth
     design = DESIGNS[args.design]
     if args.quick and design.name != "suite":
         ap.error("--quick is the suite's development subset")
@@ -179,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         groups.setdefault(c.geometry, []).append(c)
     label = "quick" if args.quick else "full" if design.name == "suite" else design.name
     log(f"hard cases ({label}): {len(todo)} renders x {len(NOISES)} noise levels on {len(groups)} geometries, "
-        f"{size} px, {spp} spp, max_depth {max_depth}")
+        f"{size} px, {spp} spp, max_depth {args.max_depth}")
     t_start = time.perf_counter()
     rows, render_s = [], 0.0
     for gi, (geo, group) in enumerate(groups.items()):
@@ -189,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         camera = camera_for(geo, size)
         renders = {}
         for c in group:
-            renders[c.name] = cached_render(c, mesh, camera, args.out / "renders", spp, max_depth)
+            renders[c.name] = cached_render(c, mesh, camera, args.out / "renders", spp, args.max_depth)
             render_s += renders[c.name]["seconds"] * (not renders[c.name]["cached"])
             log(f"  [{gi + 1}/{len(groups)}] {geo.key}: {c.name} rendered in {renders[c.name]['seconds']:.1f} s"
                 f"{' (cached)' if renders[c.name]['cached'] else ''}, render noise {100 * renders[c.name]['mc']:.2f}%")
@@ -208,10 +207,11 @@ def main(argv: list[str] | None = None) -> int:
                         for r in ok) + (f"; {len(got) - len(ok)} not solved" if len(got) > len(ok) else ""))
     wall = time.perf_counter() - t_start
     made_by = invocation("bench.hard", argv)
-    header = header_lines(label, len(todo), len(groups), len(rows), size, spp, max_depth, wall, render_s, made_by)
+    header = header_lines(label, len(todo), len(groups), len(rows), size, spp, args.max_depth, wall, render_s,
+                          made_by)
     text = markdown(rows, header, NOISES)
     print(text)
-    data = json.dumps({"label": label, "size": size, "spp": spp, "max_depth": max_depth, "wall_seconds": wall,
+    data = json.dumps({"label": label, "size": size, "spp": spp, "max_depth": args.max_depth, "wall_seconds": wall,
                        "render_seconds": render_s, "made_by": made_by, "rows": rows}, indent=1, default=float)
     tag = "" if not args.sets else "-" + hashlib.sha1(" ".join(args.sets).encode()).hexdigest()[:8]
     (args.out / f"rows_{label}{tag}.json").write_text(data)

@@ -463,6 +463,7 @@ class Gather:
         t0 = time.perf_counter()
         nodes = self.nodes
         out_r, out_c, out_w = [], [], []
+        split = nodes.object_split.any_split  # hits on the object are placed in its faces' parts
         per = max(1, _BATCH // max(1, n_rays))
         R = int(n_rays)
         for a in range(0, pos.shape[0], per):
@@ -476,7 +477,6 @@ class Gather:
             shp = dr.reinterpret_array(mi.UInt32, si.shape)
             # only the front side of a surface reflects (Mitsuba's diffuse BSDF is one-sided)
             front = valid & (dr.dot(si.n, ray.d) < 0)
-            split = nodes.object_split.any_split
             dr.eval(front, shp, si.prim_index, si.p, wt, *((pi.prim_uv,) if split else ()))
             wt_np = np.asarray(wt)
             hit = np.flatnonzero(np.asarray(front, bool))  # lanes

@@ -29,6 +29,11 @@ NODE_SPAN = 0.03
 MAX_SUBTRIANGLES = 2_000_000
 
 
+def longest_edges(tri: np.ndarray) -> np.ndarray:
+    """(F,) the longest edge of each face (F, 3, 3)."""
+    return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+
+
 @dataclass
 class FaceSplit:
     """The faces (F, 3, 3) of a mesh split into sub-triangles: face f into ``n[f]``^2 by a regular grid of its
@@ -48,11 +53,12 @@ class FaceSplit:
         return bool((self.n > 1).any())
 
     @classmethod
-    def of(cls, tri: np.ndarray, max_edge: float) -> "FaceSplit":
+    def of(cls, tri: np.ndarray, max_edge: float, longest: np.ndarray | None = None) -> "FaceSplit":
         """Split every face (F, 3, 3) whose longest edge exceeds ``max_edge`` into n^2 sub-triangles, n = ceil(its
-        longest edge / max_edge), so that each sub-triangle's edges are at most ``max_edge``."""
+        longest edge / max_edge), so that each sub-triangle's edges are at most ``max_edge``. ``longest``: the
+        faces' longest edges (F,), when the caller has them (:func:`longest_edges`)."""
         tri = np.asarray(tri, np.float64)
-        longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+        longest = longest_edges(tri) if longest is None else longest
         n = np.maximum(1, np.ceil(longest / max_edge - 1e-9)).astype(np.int64) if max_edge > 0 else \
             np.ones(len(tri), np.int64)
         offset = np.concatenate([[0], np.cumsum(2 * n * n)])
@@ -132,10 +138,10 @@ def mesh_nodes(tri: np.ndarray, normals: np.ndarray, max_nodes: int, span: float
     beyond, every sub-triangle by :func:`face_clusters`' cells. ``span``: :data:`NODE_SPAN` by default."""
     v = tri.reshape(-1, 3)
     h = (NODE_SPAN if span is None else span) * 0.5 * float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
-    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    longest = longest_edges(tri)
     while h > 0 and float((np.ceil(longest / h) ** 2).sum()) > MAX_SUBTRIANGLES:
         h *= 1.25
-    split = FaceSplit.of(tri, h)
+    split = FaceSplit.of(tri, h, longest)
     sub_n = normals[split.parent]
     if tri.shape[0] > max_nodes:
         node, count = face_clusters(split.tri, sub_n, max_nodes)
