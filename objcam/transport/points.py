@@ -10,10 +10,14 @@ disagree with the photo's. Here the photo places the source:
    the MAX_BLOBS with the most light), brightest first, the residual with the light of the blob and the texels
    about it (where the box solve drew the rings that sharpen its shadows) above the sky around them (the median
    of the next ring) put back: what a source there has to explain;
-2. the point whose direct light best explains it (per channel, a non-negative amplitude by least squares; the
-   score is the drop in the sum of squares), first at the centres of the blob's brightest texels and their
-   neighbours, then on three finer lattices about the best (1/4 of a texel with a few sub-pixel samples, 1/16 and
-   1/64 with all of them: the score's optimum is flat to parts in 1e4 there);
+2. the point whose light best explains it (per channel, a non-negative amplitude by least squares; the score is
+   the drop in the sum of squares), first at the centres of the blob's brightest texels and their neighbours,
+   then on three finer lattices about the best (1/4 of a texel with a few sub-pixel samples, 1/16 and 1/64 with
+   all of them: the score's optimum is flat to parts in 1e4 there). A point's light is the column step 3 gives
+   it: its direct light plus the indirect part of the box column of the texel holding it. The residual holds the
+   source's bounce light too, and a point fitted with its direct light alone moves to where that mimics the
+   bounce (a lamp near the zenith over a chair seen from 60 deg: placed 2.3 deg off, towards lighting the back's
+   front faces, which the seat lights; bench/results.md, issue 22, session 46);
 3. the texel holding the point gets the point's direct light (all sub-pixel samples) times the texel's solid
    angle as its column, so the texel's value stays its mean radiance; its indirect part is kept (it varies slowly
    with the direction). The solve then holds the source in the texel that contains it.
@@ -175,6 +179,34 @@ def _lattice(centre: tuple[float, float], step: float, grid: EnvGrid) -> tuple[n
     return np.clip(centre[0] + du.ravel(), 1e-6, grid.height - 1e-6), centre[1] + dv.ravel()
 
 
+class TexelBounce:
+    """The indirect part of box columns per unit energy: for a direction, (A's column - the box direct light) / the
+    solid angle of the texel holding it, the light :func:`point_columns` keeps beside a point's direct light (it
+    varies slowly with the direction). Zero for a texel A does not hold; each texel's box light computed once."""
+
+    def __init__(self, direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray):
+        self.direct, self.grid, self.A = direct, grid, A
+        self.where = {int(t): i for i, t in enumerate(texel_index)}
+        self.omega = grid.solid_angles().ravel()
+        self.cache: dict[int, np.ndarray] = {}
+
+    def of_texel(self, j: int) -> np.ndarray:
+        """(C, M) float32: texel ``j``'s indirect light per unit energy."""
+        if j not in self.cache:
+            if j not in self.where:
+                self.cache[j] = np.zeros(self.A.shape[:2], np.float32)
+            else:
+                box = self.direct.columns(np.array([j]))[:, :, 0]
+                self.cache[j] = (self.A[:, :, self.where[j]] - box) / np.float32(self.omega[j])
+        return self.cache[j]
+
+    def at(self, dirs: np.ndarray) -> np.ndarray:
+        """(C, M, D) float32 for the unit directions ``dirs`` (D, 3)."""
+        row, col = self.grid.texel_of(np.asarray(dirs, np.float64).reshape(-1, 3))
+        return np.stack([self.of_texel(int(j)) for j in np.asarray(row) * self.grid.width + np.asarray(col)],
+                        axis=-1)
+
+
 def find_sources(direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray, y: np.ndarray, use: np.ndarray,
                  x: np.ndarray, blobs: list[np.ndarray]) -> list[PointSource]:
     """The point source of each blob. direct: the box A's SplitDirect; A (C, M, N) the box A, y (M, 3) the target,
@@ -183,6 +215,12 @@ def find_sources(direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray, 
     out, before the next."""
     rows_n = texel_index // grid.width
     cols_n = texel_index % grid.width
+    bounce = TexelBounce(direct, grid, texel_index, A)
+
+    def light(dirs: np.ndarray, search: bool) -> np.ndarray:
+        """(C, fitted pixels, D): the points' columns per unit energy, as point_columns will give them."""
+        return (split_point_direct(direct, dirs, search) + bounce.at(dirs))[:, use]
+
     r = y[use] - _predict(A, x)[use]
     lum = x @ LUMA
     found = []
@@ -202,13 +240,13 @@ def find_sources(direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray, 
                  for p in core for dr_ in (-1, 0, 1) for dc in (-1, 0, 1) if 0 <= rows_n[p] + dr_ < grid.height}
         cells = np.array(sorted(cells), float)
         u, v = cells[:, 0] + 0.5, cells[:, 1] + 0.5
-        _, gain = _fit(split_point_direct(direct, grid_directions(grid, u, v), True)[:, use], r_b)
+        _, gain = _fit(light(grid_directions(grid, u, v), True), r_b)
         best = int(np.argmax(gain))
         centre = (float(u[best]), float(v[best]))
         for level, step in enumerate(REFINE_STEPS):
             u, v = _lattice(centre, step, grid)
             dirs = grid_directions(grid, u, v)
-            cols = split_point_direct(direct, dirs, level == 0)[:, use]  # the finer lattices with every sample
+            cols = light(dirs, level == 0)  # the finer lattices with every sample
             amp, gain = _fit(cols, r_b)
             best = int(np.argmax(gain))
             centre = (float(u[best]), float(v[best]))
