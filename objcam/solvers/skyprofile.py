@@ -13,8 +13,11 @@ elevation. This step asks the data, after the solve, whether the detail is their
 3. the profile map is kept when the fit's sum of squared residuals over the fitted pixel values rises by less
    than its own spread, ``sqrt(2 / M)`` x the solved map's (M values: a chi-squared of M values has spread
    ``sqrt(2 M)``): the rule of objcam.solvers.sources, one test for the whole map;
-3b. where the row means fail it, the profile model's own fit is tested (objcam.solvers.plan.known): the envmap
-   solved on the profile model with the same prior on the same pixels (plain least squares, no outlier rounds),
+3b. where the row means fail it, the profile model's own fit is tested (objcam.solvers.plan.known): the better
+   of the envmap solved on the profile model with the same prior on the same pixels (plain least squares, no
+   outlier rounds) and the row means themselves (a member of the model: at the map's prior the solved member can
+   fit worse, lamp85_r0_n2 on the hard suite 199 spreads above the map against its row means' 20.7; session 46:
+   2 suite targets more take the profile, lamp85_r0_n2 0.35 -> 0.75 SSIM),
    kept when its sum of squares lies above the solved map's by at most :func:`misfit_allowance` (one spread, or
    the map's own misfit beyond the noise where that is larger) and, unless the map's light is one bright blob,
    below it by at most one spread. The row means
