@@ -55,6 +55,20 @@ def split_col(direct, w: np.ndarray) -> np.ndarray:
     return point_direct(direct.parts[0][1], w[None])[0, :, 0]
 
 
+def _lamp_photo(grid, A: np.ndarray, lamp: np.ndarray, j: int, seed: int) -> tuple:
+    """(photo y (M, 3), box solve x (N, 3), the blob's texels): the sky through the box A (1, M, N) plus the lamp's
+    light ``lamp`` (M,), 0.2% noise; the box solve is the sky with the lamp spread over the 3 x 3 texels about its
+    texel ``j``."""
+    sky = _sky(grid)
+    y1 = A[0] @ sky + lamp
+    y = np.repeat(y1[:, None], 3, axis=1) * (1 + 0.002 * np.random.default_rng(seed).standard_normal((y1.size, 3)))
+    x = np.repeat(sky[:, None], 3, axis=1)
+    r0, c0 = divmod(j, grid.width)
+    blob = np.array([r * grid.width + (c % grid.width) for r in (r0 - 1, r0, r0 + 1) for c in (c0 - 1, c0, c0 + 1)])
+    x[blob] += LAMP / 9.0
+    return y, x, blob
+
+
 def _angle(a, b) -> float:
     return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1.0, 1.0))))
 
@@ -101,15 +115,8 @@ def test_the_search_places_a_lamp_inside_its_texel_and_keeps_its_energy(scene):
     assert _angle(grid.directions().reshape(-1, 3)[j], w_true) > 4.5  # the centre would fail the bound below
     tex = np.arange(grid.n_texels)
     A = direct.columns(tex)  # (1, M, N) box texels
-    sky = _sky(grid)
-    y1 = A[0] @ sky + LAMP * omega * split_col(direct, w_true)
-    y = np.repeat(y1[:, None], 3, axis=1) * (1 + 0.002 * np.random.default_rng(0).standard_normal((y1.size, 3)))
-    x = np.repeat(sky[:, None], 3, axis=1)
-    r0, c0 = divmod(j, grid.width)
-    blob = np.array([r * grid.width + (c % grid.width) for r in (r0 - 1, r0, r0 + 1) for c in (c0 - 1, c0, c0 + 1)])
-    x[blob] += LAMP / 9.0
-    use = np.ones(y.shape[0], bool)
-    found = find_sources(direct, grid, tex, A, y, use, x, [blob])
+    y, x, blob = _lamp_photo(grid, A, LAMP * omega * split_col(direct, w_true), j, seed=0)
+    found = find_sources(direct, grid, tex, A, y, np.ones(y.shape[0], bool), x, [blob])
     assert len(found) == 1
     p = found[0]
     assert _angle(p.direction, w_true) < 0.5 and p.texel == j  # measured: 0.10 deg
@@ -134,13 +141,7 @@ def test_the_search_fits_a_point_with_its_texel_s_bounce_light(scene, monkeypatc
     solid = grid.solid_angles().ravel()
     bounce = np.broadcast_to(0.3 * (0.8 / np.pi) * np.clip(dirs[:, 2], 0.0, None) * solid, (direct.m, dirs.shape[0]))
     A = direct.columns(tex) + bounce[None].astype(np.float32)
-    sky = _sky(grid)
-    y1 = A[0] @ sky + LAMP * omega * (split_col(direct, w_true) + bounce[:, j] / omega)
-    y = np.repeat(y1[:, None], 3, axis=1) * (1 + 0.002 * np.random.default_rng(3).standard_normal((y1.size, 3)))
-    x = np.repeat(sky[:, None], 3, axis=1)
-    r0, c0 = divmod(j, grid.width)
-    blob = np.array([r * grid.width + (c % grid.width) for r in (r0 - 1, r0, r0 + 1) for c in (c0 - 1, c0, c0 + 1)])
-    x[blob] += LAMP / 9.0
+    y, x, blob = _lamp_photo(grid, A, LAMP * omega * (split_col(direct, w_true) + bounce[:, j] / omega), j, seed=3)
     use = np.ones(y.shape[0], bool)
     p = find_sources(direct, grid, tex, A, y, use, x, [blob])[0]
     assert _angle(p.direction, w_true) < 0.5 and p.texel == j  # measured: 0.1 deg
