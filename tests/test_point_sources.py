@@ -151,6 +151,29 @@ def test_the_search_fits_a_point_with_its_texel_s_bounce_light(scene, monkeypatc
     assert _angle(q.direction, w_true) > 1.0 and not np.allclose(q.amplitude, LAMP, rtol=0.1)
 
 
+def test_the_search_scores_a_point_with_the_column_it_gets(scene):
+    """For points in texels the camera also sees directly past the plane (the sky beside it) and in the lamp's, the
+    light the search scores (point direct light + TexelBounce) times the texel's solid angle is the column
+    point_columns gives the texel, to float32 rounding, with A holding bounce light (the pedestal above). Broken:
+    a score without the sky seen past the scene misses it at the texels the camera sees past the plane."""
+    from objcam.transport.points import PointSource, TexelBounce, point_columns, split_point_direct
+
+    s, direct, grid = scene
+    bg = direct.parts[0][1].bg.tocsc()
+    seen = np.flatnonzero(bg.getnnz(axis=0))  # texels some pixel sees past the plane
+    _, j, _ = _lamp()
+    tex = np.arange(grid.n_texels)
+    dirs, solid = grid.directions().reshape(-1, 3), grid.solid_angles().ravel()
+    A = direct.columns(tex) + (0.1 * np.clip(dirs[:, 2], 0.0, None) * solid)[None, None, :].astype(np.float32)
+    bounce = TexelBounce(direct, grid, tex, A)
+    assert seen.size > 0
+    for t in (*seen[:3], j):
+        w = dirs[t]
+        pos, delta, _ = point_columns(direct, grid, tex, [PointSource(w, int(t), np.ones(3), 1.0)])
+        scored = (split_point_direct(direct, w[None], False) + bounce.at(w[None])) * solid[t]
+        assert np.allclose(scored, A[:, :, pos] + delta, rtol=1e-5, atol=1e-7), t
+
+
 def test_auto_gives_a_sub_texel_lamp_its_point_column(tmp_path, scene):
     """The stage: a photo of a sky and a lamp at a sub-texel position; auto's box solve leaves it spread, the point
     candidate finds it (within a degree) and fits best: the target's A is the box A with the point's column at

@@ -179,10 +179,21 @@ def _lattice(centre: tuple[float, float], step: float, grid: EnvGrid) -> tuple[n
     return np.clip(centre[0] + du.ravel(), 1e-6, grid.height - 1e-6), centre[1] + dv.ravel()
 
 
+def background(direct, texels: np.ndarray) -> np.ndarray:
+    """(1, M, B) float32: the light of the texels ``texels`` (B,) that pixels see directly past the scene (each
+    DirectModel's ``bg``, 1 / S per sample that misses the scene towards the texel); zero where no pixel does."""
+    out = np.zeros((1, direct.m, len(texels)), np.float32)
+    for rows, dm in direct.parts:
+        if dm.bg is not None:
+            out[0, rows] = dm.bg[:, texels].toarray().astype(np.float32)
+    return out
+
+
 class TexelBounce:
-    """The indirect part of box columns per unit energy: for a direction, (A's column - the box direct light) / the
-    solid angle of the texel holding it, the light :func:`point_columns` keeps beside a point's direct light (it
-    varies slowly with the direction). Zero for a texel A does not hold; each texel's box light computed once."""
+    """What :func:`point_columns` keeps beside a point's direct light, per unit energy: for a direction, (A's
+    column - the box direct light + the background seen past the scene) / the solid angle of the texel holding
+    it, i.e. the box column's indirect part (it varies slowly with the direction) and the sky seen past the scene.
+    Zero for a texel A does not hold; each texel's box light computed once."""
 
     def __init__(self, direct, grid: EnvGrid, texel_index: np.ndarray, A: np.ndarray):
         self.direct, self.grid, self.A = direct, grid, A
@@ -196,8 +207,9 @@ class TexelBounce:
             if j not in self.where:
                 self.cache[j] = np.zeros(self.A.shape[:2], np.float32)
             else:
-                box = self.direct.columns(np.array([j]))[:, :, 0]
-                self.cache[j] = (self.A[:, :, self.where[j]] - box) / np.float32(self.omega[j])
+                tex = np.array([j])
+                kept = self.A[:, :, self.where[j]] - (self.direct.columns(tex) - background(self.direct, tex))[:, :, 0]
+                self.cache[j] = kept / np.float32(self.omega[j])
         return self.cache[j]
 
     def at(self, dirs: np.ndarray) -> np.ndarray:
@@ -278,7 +290,4 @@ def point_columns(direct, grid: EnvGrid, texel_index: np.ndarray, sources: list[
     omega = grid.solid_angles().ravel()[tex].astype(np.float32)
     pts = split_point_direct(direct, np.stack([s.direction for s in used]), False) * omega[None, None, :]
     box = direct.columns(tex)  # the box direct light, with the background seen past the scene (kept)
-    for rows, dm in direct.parts:
-        if dm.bg is not None:
-            pts[:, rows] += dm.bg[:, tex].toarray()[None].astype(np.float32)
-    return pos, pts - box, used
+    return pos, pts + background(direct, tex) - box, used
