@@ -202,7 +202,7 @@ class TexelBounce:
         self.cache: dict[int, np.ndarray] = {}
 
     def of_texel(self, j: int) -> np.ndarray:
-        """(C, M) float32: texel ``j``'s indirect light per unit energy."""
+        """(C, M) float32: texel ``j``'s indirect light and sky seen past the scene, per unit energy."""
         if j not in self.cache:
             if j not in self.where:
                 self.cache[j] = np.zeros(self.A.shape[:2], np.float32)
