@@ -134,8 +134,8 @@ def test_a_smooth_sky_on_box_texels_keeps_them_and_fit_refuses_what_it_does_not_
     _photos(folder, (("t0", load_transport(tmp_path / "box", "t0"), _lamp_and_sky()[1]),))
     m = _run(folder, tmp_path / "auto", model="direct")  # auto: nothing black, no blob: no second A built
     rec = m["texel_kernel_auto"]["targets"]["t0"]
-    assert rec["dark_sky_area_box"] < 0.02 and rec["kernel"] == "box" and set(rec) == {"dark_sky_area_box",
-                                                                                     "kernel", "chi2_box"}
+    assert rec["dark_sky_area_box"] < 0.02 and rec["kernel"] == "box" and set(rec) == {
+        "dark_sky_area_box", "kernel", "chi2_box", "chi2_own_box", "values_compared"}
     assert "seconds_narrow" not in m and "compact_texels" not in m
     assert sorted(p.name for p in (tmp_path / "auto").iterdir() if p.is_dir()) == ["cam0"]
     m = _run(folder, tmp_path / "fit", model="direct", texel_kernel="fit")  # the narrow A built, solved, dropped
@@ -195,6 +195,39 @@ def test_pick_keeps_box_texels_unless_a_candidate_fits_better_than_the_chi2_spre
     assert pick(res, ["a", "b"], joint=True) == {"a": "point", "b": "point"}
     res["point"]["b"]["chi2"] = 1.2 - 0.9 * spread
     assert pick(res, ["a", "b"], joint=True) == {"a": "box", "b": "box"}
+
+
+def test_candidates_are_compared_on_the_same_pixels_those_every_one_of_them_fitted():
+    """Each pilot solve drops its own outliers, so box texels that cannot draw a sharp shadow drop its edge, while a
+    point source that explains the edge better (within the outlier threshold) keeps it and pays for it in its own
+    chi2. kernel.on_common_pixels scores every candidate over the pixels all of them fitted, where the point fits
+    better and wins; the test's test: on their own pixels box texels would be kept."""
+    from objcam.transport.kernel import on_common_pixels, pick
+
+    rng = np.random.default_rng(3)
+    m, sigma = 20_000, 0.01
+    y = np.full((m, 3), 1.0) + rng.normal(0.0, sigma, (m, 3))  # the photo: median 1, so sigma_abs = sigma
+    edge = np.zeros(m, bool)
+    edge[:400] = True  # a shadow's edge: box texels miss it by 10 sigma and drop it, the point by 5 and keep it
+    fly = np.zeros(m, bool)
+    fly[400:410] = True  # fireflies: every candidate misses them by 1000 sigma and drops them
+    y[fly] += 10.0
+    box_pred = 1.0 + np.where(edge, 10 * sigma, 0.3 * sigma)[:, None] * np.ones(3)
+    point_pred = 1.0 + np.where(edge, 5 * sigma, 0.2 * sigma)[:, None] * np.ones(3)
+
+    def result(pred, dropped):
+        r = (y - pred)[~dropped]
+        return {"chi2": float(np.mean((r / sigma) ** 2)), "values": m * 3, "y": y, "pred": pred,
+                "fitted": ~dropped, "noise": sigma}
+
+    res = {"box": {"t": result(box_pred, edge | fly)}, "point": {"t": result(point_pred, fly)}}
+    assert res["box"]["t"]["chi2"] < 1.2 < 1.4 < res["point"]["t"]["chi2"]  # on their own pixels box fits better
+    assert pick(res, ["t"], joint=False) == {"t": "box"}  # ... and would be kept (the test's test)
+    on_common_pixels(res, ["t"])
+    assert res["box"]["t"]["values"] == res["point"]["t"]["values"] == (m - 410) * 3  # edge and fireflies out
+    assert res["point"]["t"]["chi2"] < 0.98 * res["box"]["t"]["chi2"]
+    assert res["box"]["t"]["chi2_own"] < res["point"]["t"]["chi2_own"]  # the solves' own kept for the record
+    assert pick(res, ["t"], joint=False) == {"t": "point"}
 
 
 def test_a_candidates_columns_and_gram_match_a_rebuilt_a_and_the_box_a_is_left_as_it_was():
