@@ -217,6 +217,12 @@ VERDICT_MARGIN_YELLOW = 1.0 / 3.0
 #: score 0.41-0.97.
 VERDICT_DARK_LEVEL = 1e-6
 VERDICT_DARK_YELLOW = 0.02
+#: dark_sky_area above which the map is red whatever light the black would hold: most of the sky black is no
+#: picture of the place, only of the lights the photo sees (a dark room's walls and ceiling at a thousandth of its
+#: lamps, which the photo cannot tell from black). A round line, "more than half", not fitted: the suite has no map
+#: black over a fifth of its sky; the held-out design's rooms black over 0.51-0.94 of it score SSIM 0.09-0.29,
+#: those at 0.42-0.45 0.33-0.63 (bench/results.md, issue 22, session 47)
+VERDICT_DARK_AREA_RED = 0.5
 #: the share of the map's light above which an undetermined (uncertain_visible_energy) or black (dark_sky_light)
 #: region turns the grade red: a tenth of the light, a relighting error no viewer would accept; a round value,
 #: not fitted (the suite's maps: at most 3.5% of the light undetermined, 10.2% black: room5_r0_n2, SSIM 0.41, red;

@@ -24,7 +24,8 @@ No ground truth is used: every measure comes from the photo, the model and the s
   over an area; a black region is the clipped negative lobe of a fit to what the model cannot express, e.g. the
   sharp shadows of a light smaller than a texel, which box texels can only sharpen by a dark ring around it.
   ``dark_sky_light``: the light that black would hold at the sky's level (:func:`black_light`) as a share of the
-  map's (red needs it above a tenth: black walls in a dark room are not a black patch in a sunlit sky).
+  map's (red needs it above a tenth: black walls in a dark room are not a black patch in a sunlit sky, or the
+  black over more than half of the sky: then the map shows the lights, not the place).
   ``dark_sky_area_solved`` / ``dark_sky_light_solved``: the same of the edge solve's map where solve.sky_profile
   then gave the sky as its row means (which fill the black but not what the model missed there); the grade takes
   the larger.
@@ -71,6 +72,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_BELOW_YELLOW,
     VERDICT_CHI2_RED,
     VERDICT_CHI2_YELLOW,
+    VERDICT_DARK_AREA_RED,
     VERDICT_DARK_LEVEL,
     VERDICT_DARK_YELLOW,
     VERDICT_EXCLUDED_YELLOW,
@@ -453,6 +455,9 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     if max(dark, filled) > VERDICT_DARK_YELLOW and light > VERDICT_LIGHT_RED:
         red.append(f"{black}, at the sky's level {light:.0%} of the light: the fit there answers what the model "
                    "cannot express, e.g. the sharp shadows of a light smaller than a texel; see residual.exr")
+    elif dark > VERDICT_DARK_AREA_RED:
+        red.append(f"{dark:.0%} of the sky is black (held at radiance 0): the map shows the lights the photo sees, "
+                   f"not the place around them (at the sky's level {light:.1%} of the light: too dim to see)")
     elif max(dark, filled) > VERDICT_DARK_YELLOW:
         yellow.append(f"{black}, at the sky's level {light:.1%} of the light: the model may miss a light smaller "
                       "than a texel")
