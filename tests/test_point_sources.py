@@ -199,7 +199,7 @@ def test_auto_gives_a_sub_texel_lamp_its_point_column(tmp_path, scene):
     write_exr(folder / "targets" / "t0" / "image.exr", img.astype(np.float32))
     m = _run(folder, tmp_path / "auto", model="direct")
     rec = m["texel_kernel_auto"]["targets"]["t0"]
-    # measured: chi2 2.63 against box 5.93, narrow 4.37, compact 4.26
+    # measured over the pixels every candidate fitted: chi2 1.86 against box 4.54, narrow 3.43, compact 3.43
     assert rec["kernel"] == "point" and rec["chi2_point"] < 0.8 * min(rec["chi2_box"], rec["chi2_compact"])
     src = m["point_sources"]["t0"][0]
     el, az = np.radians(src["elevation_deg"]), np.radians(src["azimuth_deg"])
@@ -234,7 +234,7 @@ def test_a_bright_patch_the_box_texels_explain_keeps_them(tmp_path):
     write_exr(folder / "targets" / "t0" / "image.exr", img.astype(np.float32))
     m = _run(folder, tmp_path / "auto", model="direct")
     rec = m["texel_kernel_auto"]["targets"]["t0"]
-    assert "point_sources" in m and rec["chi2_point"] > 1.1 * rec["chi2_box"]  # measured: 1.29 against 1.01
+    assert "point_sources" in m and rec["chi2_point"] > 1.1 * rec["chi2_box"]  # measured: 1.19 against 0.94
     assert rec["kernel"] != "point"
     assert not any(p.name.startswith("cam0p") for p in (tmp_path / "auto").iterdir())
 
