@@ -32,7 +32,11 @@ class RegisterParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     samples: int = Field(4000, ge=200, description="surface samples per mesh for ICP")
     yaw_steps: int = Field(24, ge=1, description="yaw sweep of the initial placement (per up axis)")
-    starts: int = Field(2, ge=1, description="best initial placements refined by ICP")
+    starts: int = Field(2, ge=1, description="best initial placements refined by ICP, each of another up axis or "
+                        "start_separation_deg of yaw from those before it")
+    start_separation_deg: float = Field(30.0, ge=0, le=180, description="least yaw between two starts of one up "
+                                        "axis: ICP converges from ~10 deg off, not from 30 (issue 4), so nearer yaws "
+                                        "are one start; 0: the best placements as they come")
     iterations: int = Field(40, ge=1, description="ICP iterations")
     trim: float = Field(0.7, gt=0.1, le=1, description="fraction of closest pairs used by each ICP step")
     max_size_ratio: float = Field(1.6, gt=1, description="largest hull/model size ratio accepted for a unit")
@@ -128,6 +132,20 @@ def _icp(src: np.ndarray, tree, dst: np.ndarray, dst_n: np.ndarray, r: np.ndarra
     return r, t, rms, mean
 
 
+def distinct_starts(cands: list[tuple], n: int, separation_deg: float) -> list[tuple]:
+    """The first ``n`` of ``cands`` (score, up axis name, yaw degrees, ...; best first) that differ from every one
+    taken before in up axis or by at least ``separation_deg`` of yaw: the sweep's neighbouring yaws of one basin
+    are one start, so the starts cover the best distinct poses (a hull that bridges a bunny's concavities scored
+    its 180-degree turn at 210 and 225 deg first: both starts in the wrong basin, the right one third)."""
+    taken: list[tuple] = []
+    for c in cands:
+        if all(c[1] != o[1] or abs((c[2] - o[2] + 180.0) % 360.0 - 180.0) >= separation_deg for o in taken):
+            taken.append(c)
+            if len(taken) == n:
+                break
+    return taken
+
+
 def register(model: MeshData, hull: MeshData, params: RegisterParams | None = None, path=None) -> Registration:
     """Register ``model`` (its own frame and unit) to ``hull`` (world metres, resting on z = 0)."""
     from scipy.spatial import cKDTree
@@ -157,7 +175,7 @@ def register(model: MeshData, hull: MeshData, params: RegisterParams | None = No
     cands.sort(key=lambda c: c[0])
     best = None
     with single_blas_thread():  # small solves: BLAS threads only contend (objcam.threads)
-        for score, up_name, yaw, r, t in cands[: params.starts]:
+        for score, up_name, yaw, r, t in distinct_starts(cands, params.starts, params.start_separation_deg):
             r2, t2, rms, mean = _icp(src, dst_tree, dst, dst_n, r, t, params.iterations, params.trim)
             if best is None or mean < best[3]:
                 best = (r2, t2, rms, mean, up_name, yaw)

@@ -20,7 +20,9 @@ object's height (the 98th percentile of the heights of the points above the plan
 ``[scale] object_height`` (``objcam.sfm.align.plane_height_frame``).
 
 Target and probe cameras: SfM sees copies downsampled like the views; their intrinsics are scaled to the full
-ingest images (u_full = (u_copy + 0.5) * s - 0.5 per axis).
+ingest images (u_full = (u_copy + 0.5) * s - 0.5 per axis). Targets shot from one tripod position (same
+intrinsics, poses within ``same_position_px`` on the support plane) share one camera, their mean pose
+(``objcam.sfm.tripod``), so that the transport builds one A for them and the solve fits them together.
 """
 
 from __future__ import annotations
@@ -79,6 +81,11 @@ class Params(BaseModel):
     target_pose: Literal["bundle", "pnp"] = Field("bundle", description="target/probe poses from the final "
                                                   "model or from a board-only PnP")
     seed: int = Field(0, ge=0, description="random seed of COLMAP (repeatable runs)")
+    same_position_px: float = Field(
+        1.0, ge=0, description="targets posed with the same intrinsics and poses that move the support plane's "
+        "image by at most this many pixels of the SfM images are one tripod position and share one camera, their "
+        "mean pose (objcam.sfm.tripod: SfM poses two shots from one tripod ~0.3 px apart, and only targets of one "
+        "camera are solved together); 0: every target keeps its own pose")
 
 
 def _frontend_options(params: Params, m: CaptureManifest):
@@ -150,6 +157,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
 
     from objcam.sfm.frontend import estimate_cameras
     from objcam.sfm.report import format_checks
+    from objcam.sfm.tripod import merge_same_position
 
     capture, out, ingest = inputs.capture, inputs.out, inputs.upstream["ingest"]
     m = CaptureManifest.load(capture)
@@ -177,10 +185,11 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                                   options=_frontend_options(params, m), camera_of=camera_of,
                                   error_path=capture / m.views.folder)
     shutil.rmtree(staged, ignore_errors=True)  # images/ holds the copies COLMAP's model refers to
+    target_cams, positions = merge_same_position(result.targets, params.same_position_px)
 
     # targets and probes: cameras at the full ingest image size
     scaled = {}
-    for kind, cams in (("targets", result.targets), ("probes", result.probes)):
+    for kind, cams in (("targets", target_cams), ("probes", result.probes)):
         for name, cam in cams.items():
             meta = json.loads((ingest / kind / name / "merge.json").read_text())
             full = _scale_camera(cam, int(meta["width"]), int(meta["height"]))
@@ -197,6 +206,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     report.update({"registered": f"{n_reg}/{n_img}", "views_registered": f"{len(result.views)}/{len(views)}",
                    "targets_registered": sorted(result.targets), "probes_registered": sorted(result.probes),
                    "full_size_cameras": scaled, "camera_of": camera_of, "n_points": n_points,
+                   "target_positions": positions,
                    "world_frame": "board" if m.board is not None else "scale.object_height"})
     from objcam.image_io import atomic_write_text
 
@@ -212,10 +222,13 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         "board_corner_rms_mm": al.get("corner_rms_mm"), "board_plane_rms_mm": al.get("plane_rms_mm"),
         "board_reprojection_px": (result.bundle or {}).get("board_rms_px_after", al.get("reprojection_rms_px")),
         "n_points": n_points, "shared_camera": bool(camera_of), "seconds": result.seconds,
+        "target_positions": len(target_cams) - sum(len(p["targets"]) - 1 for p in positions),
     }
     summary = (f"{n_reg}/{n_img} images registered ({len(result.views)}/{len(views)} views, "
                f"{len(result.targets)} target(s), {len(result.probes)} probe(s)), "
                f"{result.sfm.mean_reprojection_error_px:.2f} px, {n_points} points")
+    for p in positions:
+        summary += f", {' + '.join(p['targets'])} one position ({p['displacement_px']:.2f} px apart: one camera)"
     if al.get("corner_rms_mm") is not None:
         summary += f", board {al['corner_rms_mm']:.2f} mm RMS"
     summary += f"; grade {grade}"
