@@ -120,6 +120,27 @@ def test_pnp_cross_check(small_capture):
     assert not (bad.rms_px < 0.5 and db < 0.005 and ab < 0.6), (bad.rms_px, db, ab)
 
 
+def test_pnp_refuses_corners_on_one_line_and_poses_two_rows():
+    """Six corners along one edge of the board (a view 25 deg up that saw one row) have no pose: IPPE returned NaN
+    and the sfm stage crashed building a Camera from it. None instead; two rows pose the camera exactly."""
+    spec = BoardSpec()
+    pts = board_points_world(spec)
+    cam = Camera(width=320, height=240, fx=300.0, fy=300.0, cx=159.5, cy=119.5,
+                 world_from_camera=look_at(np.array([0.05, -0.4, 0.2]), np.zeros(3)).tolist())
+    ys = sorted({round(float(p[1]), 9) for p in pts.values()})
+    row = np.array([k for k, p in pts.items() if round(float(p[1]), 9) == ys[-1]])
+    two = np.array([k for k, p in pts.items() if round(float(p[1]), 9) in ys[-2:]])
+    assert row.size >= 6
+    for ids, posed in ((row, False), (two, True)):
+        uv = cam.project(world_points_array(spec, ids))
+        r = pnp_camera(None, spec, cam, detection=(ids, uv))
+        if not posed:
+            assert r is None
+        else:
+            d, a = camera_difference(r.camera, cam)
+            assert r.rms_px < 1e-6 and d < 1e-6 and a < 1e-4, (r.rms_px, d, a)
+
+
 # --------------------------------------------------------------------------------------------------- umeyama
 
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from objcam.camera import Camera, look_at
-from objcam.sfm.tripod import mean_camera, merge_same_position, plane_displacement_px, same_position_groups
+from objcam.sfm.tripod import (mean_camera, merge_same_position, nearest_separate, plane_displacement_px,
+                               same_position_groups)
 
 EYE = np.array([0.0, -0.35, 0.30])  # a tripod 46 cm from the object, 40 deg up
 
@@ -65,6 +66,12 @@ def test_shots_from_one_tripod_are_merged_and_others_kept():
     # 0: every target keeps its own pose
     kept, none = merge_same_position(cams, 0.0)
     assert kept == cams and none == []
+    # what was kept apart and nearest: the merged pair when nothing was merged, else the moved tripod (the zoomed
+    # camera has other intrinsics: never compared)
+    assert nearest_separate(cams, kept)["targets"] == ["rot0", "rot150"]
+    apart = nearest_separate(cams, merged)
+    assert apart["targets"][0] == "moved" and apart["displacement_px"] > 5.0
+    assert nearest_separate({"a": a}, {"a": a}) is None
 
 
 def test_mean_camera_is_rigid_and_keeps_the_intrinsics():

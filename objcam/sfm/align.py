@@ -447,11 +447,19 @@ class PnPResult:
     rms_px: float
 
 
+def _collinear(xy: np.ndarray, ratio: float = 0.05) -> bool:
+    """Whether board points ``xy`` (N, 2) lie (nearly) on one line: their spread across the principal direction is
+    under ``ratio`` of the spread along it (a corner grid's single row or column: 0)."""
+    s = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
+    return bool(s[0] == 0 or s[-1] < ratio * s[0])
+
+
 def pnp_camera(image: np.ndarray | str | Path, spec: BoardSpec, intrinsics: Camera,
                detection: tuple[np.ndarray, np.ndarray] | None = None) -> PnPResult | None:
     """The camera pose from the board alone: ``cv2.solvePnP`` (IPPE for the planar board, then Levenberg-Marquardt,
     with corners > 2 px off dropped) given ``intrinsics`` (fx, fy, cx, cy, size; its pose is ignored).
-    None when fewer than 6 corners are found."""
+    None when fewer than 6 corners are found, when they lie on one line of the board (no pose: IPPE returned NaN
+    for 6 corners along one edge, seen from 25 deg up), or when the solve does not converge."""
     import cv2
 
     if detection is None:
@@ -461,9 +469,11 @@ def pnp_camera(image: np.ndarray | str | Path, spec: BoardSpec, intrinsics: Came
     if len(ids) < 6:
         return None
     X = world_points_array(spec, ids)
+    if _collinear(X[:, :2]):
+        return None
     K = intrinsics.K
     ok, rvec, tvec = cv2.solvePnP(X, uv.reshape(-1, 1, 2), K, None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
+    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None
     keep = np.ones(len(ids), bool)
     for _ in range(2):
@@ -474,6 +484,8 @@ def pnp_camera(image: np.ndarray | str | Path, spec: BoardSpec, intrinsics: Came
         if new.sum() < 6 or np.array_equal(new, keep):
             break
         keep = new
+    if not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+        return None
     R = cv2.Rodrigues(rvec)[0]
     wfc = np.eye(4)
     wfc[:3, :3] = R.T

@@ -46,6 +46,8 @@ DEPS: tuple[str, ...] = ("ingest",)
 VERSION = "1"
 CODE_DEPS: tuple[str, ...] = ("objcam.sfm",)
 APPLIES_WHEN = "the capture has [views]"
+#: Targets kept apart but posed within this many times sfm.same_position_px of each other are named in the summary.
+NEAR_SEPARATE = 10.0
 
 
 def applies(capture: Path) -> bool:
@@ -82,10 +84,10 @@ class Params(BaseModel):
                                                   "model or from a board-only PnP")
     seed: int = Field(0, ge=0, description="random seed of COLMAP (repeatable runs)")
     same_position_px: float = Field(
-        1.0, ge=0, description="targets posed with the same intrinsics and poses that move the support plane's "
+        5.0, ge=0, description="targets posed with the same intrinsics and poses that move the support plane's "
         "image by at most this many pixels of the SfM images are one tripod position and share one camera, their "
-        "mean pose (objcam.sfm.tripod: SfM poses two shots from one tripod ~0.3 px apart, and only targets of one "
-        "camera are solved together); 0: every target keeps its own pose")
+        "mean pose (objcam.sfm.tripod: SfM posed two shots from one tripod 0.2-1.6 px apart, and only targets of "
+        "one camera are solved together); 0: every target keeps its own pose")
 
 
 def _frontend_options(params: Params, m: CaptureManifest):
@@ -157,7 +159,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
 
     from objcam.sfm.frontend import estimate_cameras
     from objcam.sfm.report import format_checks
-    from objcam.sfm.tripod import merge_same_position
+    from objcam.sfm.tripod import merge_same_position, nearest_separate
 
     capture, out, ingest = inputs.capture, inputs.out, inputs.upstream["ingest"]
     m = CaptureManifest.load(capture)
@@ -186,6 +188,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                                   error_path=capture / m.views.folder)
     shutil.rmtree(staged, ignore_errors=True)  # images/ holds the copies COLMAP's model refers to
     target_cams, positions = merge_same_position(result.targets, params.same_position_px)
+    apart = nearest_separate(result.targets, target_cams)
 
     # targets and probes: cameras at the full ingest image size
     scaled = {}
@@ -206,7 +209,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
     report.update({"registered": f"{n_reg}/{n_img}", "views_registered": f"{len(result.views)}/{len(views)}",
                    "targets_registered": sorted(result.targets), "probes_registered": sorted(result.probes),
                    "full_size_cameras": scaled, "camera_of": camera_of, "n_points": n_points,
-                   "target_positions": positions,
+                   "target_positions": positions, "nearest_separate_targets": apart,
                    "world_frame": "board" if m.board is not None else "scale.object_height"})
     from objcam.image_io import atomic_write_text
 
@@ -229,6 +232,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
                f"{result.sfm.mean_reprojection_error_px:.2f} px, {n_points} points")
     for p in positions:
         summary += f", {' + '.join(p['targets'])} one position ({p['displacement_px']:.2f} px apart: one camera)"
+    if apart is not None and apart["displacement_px"] <= NEAR_SEPARATE * params.same_position_px:
+        # near misses: meant as one tripod position? they are solved apart (one A each)
+        summary += (f", {' / '.join(apart['targets'])} {apart['displacement_px']:.2f} px apart: separate cameras "
+                    f"(sfm.same_position_px={params.same_position_px:g})")
     if al.get("corner_rms_mm") is not None:
         summary += f", board {al['corner_rms_mm']:.2f} mm RMS"
     summary += f"; grade {grade}"
