@@ -382,3 +382,43 @@ def test_a_broken_alignment_fails_the_board_figures(frontend_run, small_capture)
     broken["tilted 1 degree"] = Similarity(1.0, Rotation.from_euler("x", 1.0, degrees=True).as_matrix(), np.zeros(3))
     for name, sim in broken.items():
         assert not _board_figures_ok(*figures(sim)), (name, figures(sim))
+
+
+def test_corners_seen_only_from_one_tripod_position_are_not_triangulated():
+    """Two target photos from one tripod (the same centre) see corners no view does: their rays meet at 0 degrees
+    and the corner's depth is anything (one came out 1.7 m off, the board residual 83 mm RMS, graded red). Such a
+    corner is left out; one also seen by a view 30 degrees away is triangulated to its place."""
+    from types import SimpleNamespace
+
+    from objcam.sfm.align import BoardObservations, triangulate_corners
+
+    spec = BoardSpec()
+    pts = board_points_world(spec)
+    only_pair, with_view = sorted(pts)[:2]
+    f = 600.0
+    cams = {"targets/rot0.png": look_at(np.array([0.0, -0.45, 0.4]), np.zeros(3)),
+            "targets/rot150.png": look_at(np.array([0.0, -0.45, 0.4]), np.zeros(3)),
+            "views/v0.png": look_at(np.array([0.25, -0.4, 0.35]), np.zeros(3))}
+
+    class _Pose:
+        def __init__(self, cfw):
+            self._m = cfw[:3]
+
+        def matrix(self):
+            return self._m
+
+    images, det = {}, {}
+    cam = SimpleNamespace(focal_length_x=f, focal_length_y=f,
+                          cam_from_img=lambda uv: (np.asarray(uv) - 0.5 - [159.5, 119.5]) / f)
+    for i, (name, wfc) in enumerate(cams.items()):
+        cfw = np.linalg.inv(wfc)
+        images[i] = SimpleNamespace(name=name, camera_id=0, cam_from_world=_Pose(cfw))
+        c = Camera(width=320, height=240, fx=f, fy=f, cx=159.5, cy=119.5, world_from_camera=wfc.tolist())
+        ids = np.array([only_pair, with_view] if name.startswith("targets") else [with_view])
+        det[name] = (ids, c.project(np.array([pts[int(k)] for k in ids])))
+    rec = SimpleNamespace(images=images, cameras={0: cam})
+    tri = triangulate_corners(rec, BoardObservations(det, sorted(det)))
+    assert only_pair not in tri and with_view in tri
+    assert np.linalg.norm(tri[with_view][0] - pts[with_view]) < 1e-6
+    # the test's test: without the angle rule the pair's corner is "triangulated"
+    assert only_pair in triangulate_corners(rec, BoardObservations(det, sorted(det)), min_angle_deg=0.0)
