@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from bench.photographed_sweep import failures, markdown
+from bench.photographed_sweep import failures, markdown, silent_targets
 
 
-def _row(case, ssim, row_mean, grade, **kw):
-    t = {"ssim": ssim, "row_mean_ssim": row_mean, "beats_row_mean": ssim > row_mean, "grade": grade,
+def _row(case, ssim, flat, grade, **kw):
+    t = {"ssim": ssim, "flat_ssim": flat, "row_mean_ssim": flat + 0.1, "grade": grade,
          "brightest_angle_deg": 1.0, "albedo_relative_rmse": 0.03}
-    silent = [] if (t["beats_row_mean"] or grade == "red") else ["t0"]
+    silent = silent_targets({"t0": t})
     return {"case": case, "varies": "x", "exit": 0, "positions": [], "silhouette_agreement": 0.8,
             "targets": {"t0": t}, "silent": silent, **kw}
 
@@ -18,11 +18,17 @@ def test_a_silent_map_or_a_traceback_fails_the_sweep_and_a_refusal_does_not():
             {"case": "refused", "varies": "x", "exit": 2, "error": "object.ply: ... -- fix: ...", "traceback": False}]
     assert failures(rows) == []
     md = markdown(rows, "header")
-    assert "silent (finished, a target below the row-mean map and not red): none" in md
+    assert "silent (finished, a target no better than the flat map and not red): none" in md
     assert "refused with a one-line error: refused" in md
     bad = rows + [_row("quiet", 0.3, 0.5, "yellow"),
                   {"case": "crash", "varies": "x", "exit": 2, "error": "stage sfm failed", "traceback": True}]
     assert failures(bad) == ["quiet", "crash"]
     md = markdown(bad, "header")
-    assert "silent (finished, a target below the row-mean map and not red): quiet (t0)" in md
+    assert "silent (finished, a target no better than the flat map and not red): quiet (t0)" in md
     assert "failed with a traceback: crash" in md
+
+
+def test_silent_means_no_better_than_a_flat_map_and_not_red():
+    t = {"ssim": 0.30, "flat_ssim": 0.30, "grade": "yellow"}
+    assert silent_targets({"a": t}) == ["a"]
+    assert silent_targets({"a": t | {"grade": "red"}, "b": t | {"ssim": 0.31}}) == []
