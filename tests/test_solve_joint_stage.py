@@ -586,3 +586,21 @@ def test_the_final_envmaps_stack_the_cameras_at_their_albedo():
     # a faint prior on the texels themselves: the noise-free data give back the truth
     X0, _ = final_envmaps(cams, rhos, grid, texel_index, Params(lr=1e-12, texel_group=0), ls=1e-9)
     np.testing.assert_allclose(X0, X_true, rtol=1e-3)
+
+
+def test_several_illuminations_each_on_its_own_camera_are_told_to_share_one():
+    """Two targets with every albedo unknown, each alone on its camera (SfM posed them apart, or two camera files):
+    the warning's fix is one camera position, not 'photograph two or more illuminations' (which they did)."""
+    from objcam.solvers.plan.summary import solve_summary
+
+    info = {"kkt_residual_max": 1e-15, "albedo": "unknown", "envmap_constrained_by_data": False,
+            "relative_image_residual": 0.0, "illuminations_in_problem": 1}
+    one, _ = solve_summary({"t0": info | {"illumination": "t0"}}, "exact", 1.0)
+    two, _ = solve_summary({"rot0": info | {"illumination": "rot0"}, "rot150": info | {"illumination": "rot150"}},
+                           "exact", 1.0)
+    assert "photograph two or more illuminations" in one and "camera position" not in one
+    assert two.startswith("WARNING: rot0, rot150: one illumination") and "one camera position" in two
+    assert "photograph two or more illuminations" not in two
+    # one illumination seen by two cameras: still one illumination
+    views, _ = solve_summary({"a": info | {"illumination": "sun"}, "b": info | {"illumination": "sun"}}, "exact", 1.0)
+    assert "photograph two or more illuminations" in views
