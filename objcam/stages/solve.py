@@ -50,6 +50,8 @@ def run(inputs: StageInputs, params: SolveParams) -> StageOutputs:
     t_all = time.perf_counter()
     data = load_targets(scene, inputs.upstream["transport"])
     solutions = solve_capture(scene, data, params, inputs.capture)
+    if params.align == "auto":
+        data, solutions = aligned(scene, data, solutions, params, inputs.capture)
     for name, sol in solutions.items():
         write_target(inputs.out / name, sol, data[name])
     summary, metrics = solve_summary({k: s.info for k, s in solutions.items()}, params.method,
@@ -74,6 +76,55 @@ def load_targets(scene, transport_dir: Path) -> dict[str, TargetData]:
                              "check the camera pose and the valid mask")
         out[target.name] = TargetData(tr, pooled, ok, y, use)
     return out
+
+
+def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolution], params: SolveParams,
+            capture: Path) -> tuple[dict[str, TargetData], dict[str, TargetSolution]]:
+    """``data`` and ``solutions`` after registering each camera's photos to the model (objcam.solvers.plan.align):
+    per round one shift per camera from its targets' predictions, the photos resampled where it is significant and
+    the capture solved again. Every solution's info gets ``alignment``: the total shift in the photo's pixels and
+    each round's estimate (pixels of A's grid)."""
+    from objcam.solvers.plan.align import ROUNDS, estimate_shift, shift_image, significant
+
+    specs = {t.name: t for t in scene.targets}
+    groups: dict[int, list[str]] = {}
+    for name, d in data.items():
+        groups.setdefault(id(d.transport), []).append(name)
+    total = {g: np.zeros(2) for g in groups}
+    rounds: dict[int, list[dict]] = {g: [] for g in groups}
+    for _ in range(ROUNDS):
+        moved = False
+        for g, names in groups.items():
+            tr = data[names[0]].transport
+            kept = np.zeros(data[names[0]].pooled_ok.size, bool)
+            kept[tr.pixel_index] = True
+            usable = []
+            for n in names:
+                u = data[n].pooled_ok.reshape(-1) & kept
+                if solutions[n].rejected is not None:
+                    u[tr.pixel_index[solutions[n].rejected]] = False
+                usable.append(u.reshape(data[n].pooled_ok.shape))
+            est = estimate_shift([solutions[n].prediction for n in names], [data[n].pooled for n in names], usable)
+            take = significant(est)
+            rounds[g].append({"shift": [round(float(v), 4) for v in est["shift"]],
+                              "stderr": [round(float(v), 4) for v in est["stderr"]], "taken": take})
+            if not take:
+                continue
+            moved = True
+            total[g] += est["shift"]
+            for n in names:
+                img, ok = shift_image(specs[n].load_image(scene.folder), specs[n].load_valid(scene.folder),
+                                      total[g] * tr.downsample)
+                data[n] = TargetData(tr, *target_rows(img, ok, tr.downsample, tr.pixel_index))
+        if not moved:
+            break
+        solutions = solve_capture(scene, data, params, capture)
+    for g, names in groups.items():
+        f = data[names[0]].transport.downsample
+        for n in names:
+            solutions[n].info["alignment"] = {"shift_px": [round(float(v) * f, 4) for v in total[g]],
+                                              "rounds": rounds[g]}
+    return data, solutions
 
 
 def write_target(d: Path, sol: TargetSolution, data: TargetData) -> None:
