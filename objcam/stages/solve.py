@@ -84,7 +84,7 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
     per round one shift per camera from its targets' predictions, the photos resampled where it is significant and
     the capture solved again. Every solution's info gets ``alignment``: the total shift in the photo's pixels and
     each round's estimate (pixels of A's grid)."""
-    from objcam.solvers.plan.align import ROUNDS, estimate_shift, shift_image, significant
+    from objcam.solvers.plan.align import MIN_GAIN, ROUNDS, estimate_shift, fit_gain, shift_image, significant
 
     specs = {t.name: t for t in scene.targets}
     groups: dict[int, list[str]] = {}
@@ -92,9 +92,12 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
         groups.setdefault(id(d.transport), []).append(name)
     total = {g: np.zeros(2) for g in groups}
     rounds: dict[int, list[dict]] = {g: [] for g in groups}
+    active = list(groups)  # the cameras whose shift may still change: every one, then those moved last round
     for _ in range(ROUNDS):
-        moved = False
-        for g, names in groups.items():
+        moved: list[int] = []
+        before = (dict(data), solutions, {g: total[g].copy() for g in groups})
+        for g in active:
+            names = groups[g]
             tr = data[names[0]].transport
             kept = np.zeros(data[names[0]].pooled_ok.size, bool)
             kept[tr.pixel_index] = True
@@ -110,7 +113,7 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
                               "stderr": [round(float(v), 4) for v in est["stderr"]], "taken": take})
             if not take:
                 continue
-            moved = True
+            moved.append(g)
             total[g] += est["shift"]
             for n in names:
                 img, ok = shift_image(specs[n].load_image(scene.folder), specs[n].load_valid(scene.folder),
@@ -119,12 +122,28 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
         if not moved:
             break
         solutions = solve_capture(scene, data, params, capture)
+        names = [n for g in moved for n in groups[g]]
+        gain = fit_gain([_chi2(before[1][n]) for n in names], [_chi2(solutions[n]) for n in names])
+        for g in moved:
+            rounds[g][-1]["fit_gain"] = round(gain, 4)
+        if not gain >= MIN_GAIN:  # the shift bought little: model error, not the pose; keep the round before
+            data, solutions, total = before
+            for g in moved:
+                rounds[g][-1]["taken"] = False
+            break
+        active = moved
     for g, names in groups.items():
         f = data[names[0]].transport.downsample
         for n in names:
             solutions[n].info["alignment"] = {"shift_px": [round(float(v) * f, 4) for v in total[g]],
                                               "rounds": rounds[g]}
     return data, solutions
+
+
+def _chi2(sol: TargetSolution) -> float:
+    """A solution's misfit: the verdict's chi-squared per value, else its relative image residual squared."""
+    v = (sol.info.get("verdict") or {}).get("chi2")
+    return float(v) if v is not None else float(sol.info.get("relative_image_residual", 0.0)) ** 2
 
 
 def write_target(d: Path, sol: TargetSolution, data: TargetData) -> None:
