@@ -12,9 +12,9 @@ significant (over 3 of its standard errors and over :data:`MIN_SHIFT_PX`), every
 by it at full resolution (bilinear; a pixel whose resampling touches an unusable one becomes unusable), pooled to
 A's grid again and the capture solved again; up to :data:`ROUNDS` rounds, the shifts adding up. A round is kept
 only when that solve removes at least :data:`MIN_GAIN` of the misfit beyond the noise (:func:`fit_gain`): model
-error leans on the gradients too, and its "shift" buys little. A shift is exact
-for a camera turned about its centre by a small angle and close to it for a small move (the parallax of a
-millimetre across the object's depth is a small fraction of a pixel).
+error leans on the gradients too, and its "shift" buys little. A shift is exact for a camera turned about its
+centre by a small angle and close to it for a small move (the demo moved 1.2 mm: 0.313 -> 0.531, against 0.607
+with the true camera: the move's parallax across the object's depth is not a shift).
 """
 
 from __future__ import annotations

@@ -118,9 +118,10 @@ class SolveParams(BaseModel):
     align: Literal["auto", "off"] = Field(
         "auto", description="'auto': after the solve, the shift (pixels of A's grid) that maps the model's image onto "
         "each camera's photos is estimated from the prediction's gradients; where it is significant (over 3 of its "
-        "standard errors and 0.05 px) the photos are resampled by it and the capture solved again, up to 3 rounds "
-        "(objcam.solvers.plan.align: a camera pose a quarter of a pixel off cost the demo 0.36 SSIM); solve.json "
-        "records the shift. 'off': the photos as posed")
+        "standard errors and 0.05 px) the photos are resampled by it and the capture solved again, up to 3 rounds, "
+        "a round kept only when its solve removes a fifth of the misfit beyond the noise (model error leans on the "
+        "gradients too) (objcam.solvers.plan.align: a camera pose a quarter of a pixel off cost the demo 0.36 SSIM); "
+        "solve.json records the shift. 'off': the photos as posed")
     verdict: Literal["full", "fit"] = Field(
         "full", description="'full': every measure of the verdict (objcam.solvers.plan.verdict); 'fit': only the "
         "fit's (chi2, the residual, the black sky, the brightest source, the energy below the horizon), without "
