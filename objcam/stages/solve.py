@@ -87,6 +87,13 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
     from objcam.solvers.plan.align import MIN_GAIN, ROUNDS, estimate_shift, fit_gain, shift_image, significant
 
     specs = {t.name: t for t in scene.targets}
+    photos: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # full-resolution photo and valid mask, read once
+
+    def photo(n: str) -> tuple[np.ndarray, np.ndarray]:
+        if n not in photos:
+            photos[n] = specs[n].load_image(scene.folder), specs[n].load_valid(scene.folder)
+        return photos[n]
+
     groups: dict[int, list[str]] = {}
     for name, d in data.items():
         groups.setdefault(id(d.transport), []).append(name)
@@ -116,14 +123,13 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
             moved.append(g)
             total[g] += est["shift"]
             for n in names:
-                img, ok = shift_image(specs[n].load_image(scene.folder), specs[n].load_valid(scene.folder),
-                                      total[g] * tr.downsample)
+                img, ok = shift_image(*photo(n), total[g] * tr.downsample)
                 data[n] = TargetData(tr, *target_rows(img, ok, tr.downsample, tr.pixel_index))
         if not moved:
             break
         solutions = solve_capture(scene, data, params, capture)
-        names = [n for g in moved for n in groups[g]]
-        gain = fit_gain([_chi2(before[1][n]) for n in names], [_chi2(solutions[n]) for n in names])
+        shifted = [n for g in moved for n in groups[g]]
+        gain = fit_gain([_chi2(before[1][n]) for n in shifted], [_chi2(solutions[n]) for n in shifted])
         for g in moved:
             rounds[g][-1]["fit_gain"] = round(gain, 4)
         if not gain >= MIN_GAIN:  # the shift bought little: model error, not the pose; keep the round before
