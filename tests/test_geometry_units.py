@@ -95,3 +95,76 @@ def test_silhouette_fit_recovers_a_perturbed_pose():
     for name, bad in (("no fit", v), ("half-way", halfway)):
         e = np.linalg.norm(bad - verts, axis=1).mean()
         assert not e < 0.15e-3, (name, e)
+
+
+def _ring_torus_views():
+    """A torus 60 mm across lying on z = 0, eight ring views ~0.3 mm per pixel at its distance, its true masks."""
+    from bench.hard.objects import torus
+    from objcam.geometry.raycast import object_masks
+    from objcam.synth.views import ViewRingParams, ring_cameras
+
+    v, f = torus(0.025, 0.008)
+    truth = MeshData(v.astype(np.float32), f.astype(np.uint32))
+    cams = ring_cameras(ViewRingParams(n_views=8, width=200, height=150, distance=0.25, fov_deg=50.0))
+    return truth, cams, object_masks(truth, cams)
+
+
+def test_silhouette_holes_are_the_paper_seen_through_a_ring():
+    """The torus's projected holes (margin 0) are the pixels its true masks leave enclosed, but for a rim of about
+    a pixel (the rasterised triangles take in every pixel they touch: measured 82-89% of them); a sphere has
+    none."""
+    from objcam.geometry.silfit import silhouette_holes
+    from objcam.geometry.silhouette import _fill_holes
+    from objcam.synth.assets import object_mesh
+
+    truth, cams, masks = _ring_torus_views()
+    seen = 0
+    for cam, mask in zip(cams, masks):
+        enclosed = _fill_holes(mask) & ~mask
+        holes = silhouette_holes(truth.vertices.astype(np.float64), truth.faces.astype(np.int64), cam, 0)
+        if enclosed.sum() > 50:
+            seen += 1
+            assert (holes & enclosed).sum() > 0.75 * enclosed.sum()
+            assert (holes & ~enclosed).sum() <= 0.02 * holes.sum()
+        assert not (holes & mask).sum() > 0.02 * mask.sum()
+    assert seen >= 6  # the views look through the ring (test of the test)
+    v, f = object_mesh("sphere", 0.06)
+    assert not silhouette_holes(v.astype(np.float64), f.astype(np.int64), cams[0]).any()
+
+
+def test_silhouette_fit_of_a_ring_whose_masks_fill_its_hole():
+    """The plane-parallax masks fill a ring's hole (the paper there is hidden from most views): the fit compares
+    only the outer outline, puts the torus back (tilted 2 degrees, 1.5 mm off; measured 0.002 mm, 0.004 deg) and
+    agrees with the masks (0.94); with the hole's rims compared too, nearly half of the rim points lie off the
+    masks' outlines (0.54: the geometry stage refuses under 0.6)."""
+    from scipy.spatial.transform import Rotation
+
+    from objcam.geometry.silfit import SilhouetteFitParams, fit
+    from objcam.geometry.silhouette import _fill_holes
+
+    truth, cams, masks = _ring_torus_views()
+    filled = [_fill_holes(m) for m in masks]
+    assert sum(int((f & ~m).sum()) for f, m in zip(filled, masks)) > 500
+    v0 = truth.vertices.astype(np.float64)
+    rot = Rotation.from_rotvec(np.radians(2.0) * np.array([1.0, 0.0, 0.0])).as_matrix()
+    v = v0 @ rot.T + [0.0015, 0.0, 0.0]
+    v[:, 2] -= v[:, 2].min()
+    moved = MeshData(v.astype(np.float32), truth.faces)
+
+    def error_mm(res) -> tuple[float, float]:
+        """(centre error mm, axis tilt deg) of the fitted torus: it is symmetric about its axis, so its yaw is
+        not asked."""
+        w = np.asarray(res.world_from_world)
+        back = v @ w[:3, :3].T + w[:3, 3]
+        axis = w[:3, :3] @ rot @ np.array([0.0, 0.0, 1.0])
+        return (float(np.linalg.norm(back.mean(axis=0) - v0.mean(axis=0)) * 1e3),
+                float(np.degrees(np.arccos(min(1.0, axis[2])))))
+
+    res = fit(moved, filled, cams)
+    centre, tilt = error_mm(res)
+    assert centre < 0.1 and tilt < 0.1 and res.agree_fraction > 0.9, (centre, tilt, res)
+    # tests of the test: the pose as it started misses the bounds (1.8 mm, 2 deg); the hole's rims compared too
+    unfit = res.model_copy(update={"world_from_world": np.eye(4).tolist()})
+    assert not error_mm(unfit)[0] < 0.1 and not error_mm(unfit)[1] < 0.1
+    bad = fit(moved, filled, cams, SilhouetteFitParams(skip_hole_rims=False))
+    assert bad.agree_fraction < 0.75, bad

@@ -201,8 +201,8 @@ def with_silhouette_fit(reg: Registration, fit: SilhouetteFit, min_agreement: fl
         raise InputError(f"the object mesh's outline does not match the photographed object's silhouettes (only "
                          f"{100 * fit.agree_fraction:.0f}% of it lies on them)", path,
                          "give the mesh of the object in the photos; if it is, the views' silhouettes are poor "
-                         "(an object close in shade to the paper or its hard shadow, or a hole through it, which "
-                         "they fill): light the views so the object stands out and its shadow is soft, or lower "
+                         "(an object close in shade to the paper or its hard shadow): light the views so the "
+                         "object stands out and its shadow is soft, or lower "
                          "geometry.registration.min_silhouette_agreement to use the pose anyway")
     w = np.asarray(fit.world_from_world) @ np.asarray(reg.world_from_model)
     return reg.model_copy(update={"world_from_model": w.tolist(), "silhouette": fit})
