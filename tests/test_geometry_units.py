@@ -98,7 +98,7 @@ def test_silhouette_fit_recovers_a_perturbed_pose():
 
 
 def _ring_torus_views():
-    """A torus 60 mm across lying on z = 0, eight ring views ~0.3 mm per pixel at its distance, its true masks."""
+    """A torus 66 mm across lying on z = 0, eight ring views ~1.2 mm per pixel at its distance, its true masks."""
     from bench.hard.objects import torus
     from objcam.geometry.raycast import object_masks
     from objcam.synth.views import ViewRingParams, ring_cameras
@@ -114,13 +114,13 @@ def test_silhouette_holes_are_the_paper_seen_through_a_ring():
     a pixel (the rasterised triangles take in every pixel they touch: measured 82-89% of them); a sphere has
     none."""
     from objcam.geometry.silfit import silhouette_holes
-    from objcam.geometry.silhouette import _fill_holes
+    from objcam.geometry.silhouette import fill_holes
     from objcam.synth.assets import object_mesh
 
     truth, cams, masks = _ring_torus_views()
     seen = 0
     for cam, mask in zip(cams, masks):
-        enclosed = _fill_holes(mask) & ~mask
+        enclosed = fill_holes(mask) & ~mask
         holes = silhouette_holes(truth.vertices.astype(np.float64), truth.faces.astype(np.int64), cam, 0)
         if enclosed.sum() > 50:
             seen += 1
@@ -140,10 +140,10 @@ def test_silhouette_fit_of_a_ring_whose_masks_fill_its_hole():
     from scipy.spatial.transform import Rotation
 
     from objcam.geometry.silfit import SilhouetteFitParams, fit
-    from objcam.geometry.silhouette import _fill_holes
+    from objcam.geometry.silhouette import fill_holes
 
     truth, cams, masks = _ring_torus_views()
-    filled = [_fill_holes(m) for m in masks]
+    filled = [fill_holes(m) for m in masks]
     assert sum(int((f & ~m).sum()) for f, m in zip(filled, masks)) > 500
     v0 = truth.vertices.astype(np.float64)
     rot = Rotation.from_rotvec(np.radians(2.0) * np.array([1.0, 0.0, 0.0])).as_matrix()

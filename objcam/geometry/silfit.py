@@ -137,21 +137,19 @@ def silhouette_holes(v: np.ndarray, faces: np.ndarray, cam, margin_px: int = 3) 
     behind the camera."""
     import cv2
 
-    from objcam.geometry.silhouette import _fill_holes
+    from objcam.geometry.silhouette import fill_holes
 
     h, w = int(cam.height), int(cam.width)
-    cw = np.linalg.inv(cam.matrix)
-    pc = v @ cw[:3, :3].T + cw[:3, 3]
-    if np.any(pc[:, 2] <= 0):
+    if np.any((v - cam.centre) @ np.asarray(cam.matrix)[:3, 2] <= 0):  # depth along the optical axis
         return np.zeros((h, w), bool)
-    uv = np.stack([cam.fx * pc[:, 0] / pc[:, 2] + cam.cx, cam.fy * pc[:, 1] / pc[:, 2] + cam.cy], axis=1)
+    uv = cam.project(v)
     # fixed point with 4 fractional bits, pixel centres at integers (cv2's convention)
     tri = np.rint(np.clip(uv, -4 * w, 5 * w)[faces] * 16).astype(np.int32)
     sil = np.zeros((h, w), np.uint8)
     for t in tri:  # union of the triangles (cv2.fillPoly's even-odd rule would cut their overlaps)
         cv2.fillConvexPoly(sil, t, 1, lineType=cv2.LINE_8, shift=4)
     sil = cv2.morphologyEx(sil, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
-    holes = (_fill_holes(sil) & ~sil).astype(np.uint8)  # as the masks fill them
+    holes = (fill_holes(sil) & ~sil).astype(np.uint8)  # as the masks fill them
     if margin_px > 0 and holes.any():
         holes = cv2.dilate(holes, np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8))
     return holes.astype(bool)

@@ -156,7 +156,7 @@ def silhouette(views: list[View], i: int, params: SilhouetteParams | None = None
         obj8 = cv2.morphologyEx(obj8, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
                                                                                  (2 * r + 1, 2 * r + 1)))
     out = np.zeros((3, full_h, full_w), np.float32)
-    out[:, v0:v1, u0:u1] = _fill_holes(obj8 > 0), framed >= params.min_views, frac
+    out[:, v0:v1, u0:u1] = fill_holes(obj8 > 0), framed >= params.min_views, frac
     return out[0] > 0, out[1] > 0, out[2]
 
 
@@ -166,7 +166,7 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
 
 
-def _fill_holes(mask: np.ndarray) -> np.ndarray:
+def fill_holes(mask: np.ndarray) -> np.ndarray:
     """``mask`` with its enclosed background regions (not connected to the image border) set."""
     import cv2
 
