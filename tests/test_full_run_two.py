@@ -76,6 +76,10 @@ def test_two_illuminations_share_the_camera_and_constrain_the_envmaps(run):
     for t in TARGETS:
         info = json.loads((work / "solve" / t / "solve.json").read_text())
         assert info["envmap_constrained_by_data"] is True and info["illuminations_in_problem"] == 2, t
+        # every albedo unknown, the object's too: the verdict says the low sky trades against it (session 49)
+        v = info["verdict"]
+        assert v["object_albedo_unknown"] == 1.0 and any(w.startswith("the object's albedo is unknown")
+                                                         for w in v["reasons"]), v
         # against the truth: measured SSIM 0.733 / 0.825 (each alone 0.34, the row-mean map 0.50), the albedo's
         # relative RMSE at its fitted scale 0.022 (each alone 0.067 / 0.079)
         r = m[t]

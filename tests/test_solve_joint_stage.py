@@ -45,6 +45,8 @@ def test_joint_outputs_and_scale_note(capture):
         # the object's albedo is given (0.6): its pixels are held at it and pin the scale
         assert info["albedo"] == "unknown" and not info["scale_ambiguous"] and "absolute" in info["note"]
         assert info["pixels_albedo_known"] > 20
+        v = info["verdict"]  # so the verdict's line on an unknown object albedo stays out
+        assert v["object_albedo_unknown"] < 0.5 and not any("object's albedo" in w for w in v["reasons"]), v
         assert info["illuminations_in_problem"] == 2 and info["cameras_in_problem"] == 1
         # solve.align: the true camera; this capture's model error (direct light, 8 rows) leans on the prediction's
         # gradients as a (-0.06, -0.06) px "shift" that removes no misfit: tried and not kept (fit gain ~0)

@@ -280,6 +280,13 @@ def test_grade_rules():
     assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
     assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
     assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
+    # the object's albedo estimated: the low sky trades against it (yellow, with the fix); not over a red
+    # "one illumination and every albedo unknown", which says more
+    g, why = grade({"chi2": 1.0, "object_albedo_unknown": 1.0})
+    assert g == "yellow" and why == [why[0]] and why[0].startswith("the object's albedo is unknown")
+    assert "[albedo] object" in why[0]
+    assert grade({"chi2": 1.0, "object_albedo_unknown": 0.3})[0] == "green"
+    assert not any("object's albedo" in w for w in grade({"object_albedo_unknown": 1.0}, unconstrained=True)[1])
     g, why = grade({"chi2": 1.0, "resolution_deg": 46.3, "resolved_values": 9.6})  # a blur of the sky
     assert g == "yellow" and why[0].startswith("the photo resolves the sky to about 46 deg (10 independent")
     assert grade({"chi2": 1.0, "resolution_deg": 25.0, "resolved_values": 32.0})[0] == "green"

@@ -43,6 +43,12 @@ No ground truth is used: every measure comes from the photo, the model and the s
   ``pixels_rejected``: the share of the usable ones it dropped as outliers (objcam.solvers.outliers). chi2 is over
   the pixels it fitted.
 * the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
+* ``object_albedo_unknown``: the share of the object's pixels (object_fraction >= 1/2) whose albedo the solve
+  estimated. Where it is most of them, light a few degrees above the horizon, which the object's sides see and
+  the plane barely does, trades against the object's albedo (less albedo, more low light: a near-null direction
+  of the joint problem that this posterior, holding the albedo fixed, does not see); measured on photographed
+  captures with every albedo unknown, the 0-10 deg band at 4-10x the truth's energy, 2-3x with the object's
+  albedo given (bench/results.md, session 49). Yellow, with that fix.
 * ``sky_profile_area``: the share of the sky the map gives as one value per elevation row
   (objcam.solvers.skyprofile): its azimuthal detail is the prior's, not the photo's (yellow). Those texels'
   uncertainty is that of their row's value in the map's own model (:func:`row_mean_spread`).
@@ -376,6 +382,8 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float, full: bool
                 rec[key] = float(test[key])
         if "ss_profile_fitted" in test:  # taken within the map's own misfit beyond the noise, not within a spread
             rec["sky_profile_by_misfit"] = bool(test["ss_profile_fitted"] - test["ss_map"] > test["ss_spread"])
+    on_object = np.asarray(tr.object_fraction) >= 0.5
+    rec["object_albedo_unknown"] = float(np.asarray(tr.unknown_albedo)[on_object].mean()) if on_object.any() else 0.0
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
         rec["transport_margin"] = float(metrics["auto_margin"])
@@ -487,6 +495,10 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     mg = m.get("transport_margin")
     if mg is not None and mg > VERDICT_MARGIN_YELLOW:
         yellow.append(f"interreflections left out by a close margin ({mg:.2f} of the threshold)")
+    if not unconstrained and m.get("object_albedo_unknown", 0.0) > 0.5:
+        yellow.append("the object's albedo is unknown: light a few degrees above the horizon, which its sides see and "
+                      "the plane barely does, trades against it, so the low sky is likely too bright (give "
+                      "[albedo] object in capture.toml)")
     if m.get("noise_source") == "unknown":
         yellow.append("noise unknown: give noise_sigma in capture.toml")
     if red:
