@@ -76,7 +76,7 @@ def test_two_illuminations_share_the_camera_and_constrain_the_envmaps(run):
     for t in TARGETS:
         info = json.loads((work / "solve" / t / "solve.json").read_text())
         assert info["envmap_constrained_by_data"] is True and info["illuminations_in_problem"] == 2, t
-        # every albedo unknown, the object's too: the verdict says the low sky trades against it (session 49)
+        # every albedo unknown, the object's too: the verdict warns of the low sky's excess (session 49)
         v = info["verdict"]
         assert v["object_albedo_unknown"] == 1.0 and any(w.startswith("the object's albedo is unknown")
                                                          for w in v["reasons"]), v

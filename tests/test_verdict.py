@@ -280,7 +280,7 @@ def test_grade_rules():
     assert grade({"brightest_elevation_deg": -3.0})[0] == "red"
     assert grade({"chi2": 1.0}, unconstrained=True)[0] == "red"
     assert grade({"transport_margin": 0.5})[0] == "yellow"  # interreflections left out by a close margin
-    # the object's albedo estimated: the low sky trades against it (yellow, with the fix); not over a red
+    # the object's albedo estimated: the low sky too bright (yellow, with the fix); not over a red
     # "one illumination and every albedo unknown", which says more
     g, why = grade({"chi2": 1.0, "object_albedo_unknown": 1.0})
     assert g == "yellow" and why == [why[0]] and why[0].startswith("the object's albedo is unknown")

@@ -215,6 +215,7 @@ def _fit(model: MeshData, masks: list, cams: list, params: SilhouetteFitParams |
     n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-30)
     # at the initial pose (the fit moves it ~1-2 degrees: the margin)
     holes = [silhouette_holes(v0, faces, view.cam) if params.skip_hole_rims else None for view in views]
+    holes = [h if h is not None and h.any() else None for h in holes]  # most views of most objects: none
 
     r, t, b = np.eye(3), np.zeros(3), 0.0
     stats = (np.inf, np.inf, 0, 0.0, 0.0)

@@ -44,11 +44,11 @@ No ground truth is used: every measure comes from the photo, the model and the s
   the pixels it fitted.
 * the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
 * ``object_albedo_unknown``: the share of the object's pixels (object_fraction >= 1/2) whose albedo the solve
-  estimated. Where it is most of them, light a few degrees above the horizon, which the object's sides see and
-  the plane barely does, trades against the object's albedo (less albedo, more low light: a near-null direction
-  of the joint problem that this posterior, holding the albedo fixed, does not see); measured on photographed
-  captures with every albedo unknown, the 0-10 deg band at 4-10x the truth's energy, 2-3x with the object's
-  albedo given (bench/results.md, session 49). Yellow, with that fix.
+  estimated. Where it is most of them, the low sky comes out too bright: measured on photographed captures with
+  every albedo unknown, the 0-10 deg band at 4-10x the truth's energy, 2-3x with the object's albedo given, and
+  the object's albedo estimated low (bench/results.md, session 49). A bias of the joint solve, not a spread this
+  posterior misses: eliminating each pixel's albedo from it exactly widens the low sky's spread by ~10% only.
+  Yellow, with that fix.
 * ``sky_profile_area``: the share of the sky the map gives as one value per elevation row
   (objcam.solvers.skyprofile): its azimuthal detail is the prior's, not the photo's (yellow). Those texels'
   uncertainty is that of their row's value in the map's own model (:func:`row_mean_spread`).
@@ -496,9 +496,9 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     if mg is not None and mg > VERDICT_MARGIN_YELLOW:
         yellow.append(f"interreflections left out by a close margin ({mg:.2f} of the threshold)")
     if not unconstrained and m.get("object_albedo_unknown", 0.0) > 0.5:
-        yellow.append("the object's albedo is unknown: light a few degrees above the horizon, which its sides see and "
-                      "the plane barely does, trades against it, so the low sky is likely too bright (give "
-                      "[albedo] object in capture.toml)")
+        yellow.append("the object's albedo is unknown: with it estimated the low sky (a few degrees above the "
+                      "horizon) comes out too bright, several times the truth on the bench's photographed captures "
+                      "(give [albedo] object in capture.toml)")
     if m.get("noise_source") == "unknown":
         yellow.append("noise unknown: give noise_sigma in capture.toml")
     if red:
