@@ -68,18 +68,16 @@ CASES: dict[str, tuple[str, dict]] = {
     "knot": ("a trefoil knot (a 4 mm tube, three holes) under forest, two illuminations",
              dict(object="knot", object_height=0.034, rotations_deg=[0.0, 100.0], probe=False)),
 }
-#: objects of bench/hard written as a mesh file for the case (``object``: their name)
-HARD_OBJECTS = ("torus", "frame", "mug", "knot")
 
 
 def capture(out: Path, overrides: dict) -> Path:
     """The case's capture, rendered once per parameter set (``<out>/full_<hash>/capture``)."""
+    from bench.hard.objects import HELD_OUT_OBJECTS, OBJECTS, make_object, write_ply
     from objcam.synth.full import FullSynthParams, synthesize_full
 
     name = overrides.get("object")
-    if name in HARD_OBJECTS:  # bench/hard's mesh, in millimetres (scaled to object_height)
-        from bench.hard.objects import make_object, write_ply
-
+    # bench/hard's meshes that objcam synth does not know by name, written in millimetres (scaled to object_height)
+    if name in set(OBJECTS + HELD_OUT_OBJECTS) - {"bunny", "sphere"}:
         mesh = out / "meshes" / f"{name}.ply"
         if not mesh.is_file():
             mesh.parent.mkdir(parents=True, exist_ok=True)
