@@ -106,8 +106,7 @@ def aligned(scene, data: dict[str, TargetData], solutions: dict[str, TargetSolut
         for g in active:
             names = groups[g]
             tr = data[names[0]].transport
-            kept = np.zeros(data[names[0]].pooled_ok.size, bool)
-            kept[tr.pixel_index] = True
+            kept = tr.kept_mask().reshape(-1)
             usable = []
             for n in names:
                 u = data[n].pooled_ok.reshape(-1) & kept
