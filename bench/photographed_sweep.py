@@ -68,6 +68,11 @@ CASES: dict[str, tuple[str, dict]] = {
     "knot": ("a trefoil knot (a 4 mm tube, three holes) under forest, two illuminations",
              dict(object="knot", object_height=0.034, rotations_deg=[0.0, 100.0], probe=False)),
 }
+#: cases that are another case's photos with capture.toml declaring the object one colour (``object =
+#: "uniform"``, its value still unknown; session 50): name -> the case it copies
+ONE_COLOUR = {f"{c}_one_colour": c for c in ("two_tripod", "sphere_city", "mug", "thin_frame")}
+CASES |= {n: (f"{CASES[c][0]}; the object declared one colour (object = \"uniform\")", CASES[c][1])
+          for n, c in ONE_COLOUR.items()}
 
 
 def capture(out: Path, overrides: dict) -> Path:
@@ -94,6 +99,28 @@ def capture(out: Path, overrides: dict) -> Path:
     return root / "capture"
 
 
+def one_colour_capture(full: Path, dest: Path) -> Path:
+    """The capture ``full`` (its photos hard-linked) with capture.toml declaring the object one colour of unknown
+    value (``[albedo] object = "uniform"``); rewritten only when it changed (objcam's cache keys on it)."""
+    import os
+
+    toml = (full / "capture.toml").read_text()
+    if "[albedo]" in toml:
+        raise ValueError(f"{full}: the one-colour copy is for captures whose albedo is unknown")
+    head, tail = toml.split("\n[camera]", 1)
+    text = head + '\n[albedo]\nobject = "uniform"\n\n[camera]' + tail
+    for src in sorted(full.rglob("*")):
+        rel = src.relative_to(full)
+        if src.is_file() and rel.parts[0] != "objcam" and rel.as_posix() != "capture.toml":
+            dst = dest / rel
+            if not dst.exists():
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.link(src, dst)
+    if not (dest / "capture.toml").is_file() or (dest / "capture.toml").read_text() != text:
+        (dest / "capture.toml").write_text(text)
+    return dest
+
+
 def _summary(work: Path, stage: str) -> dict:
     p = work / stage / "stage.json"
     return json.loads(p.read_text()) if p.is_file() else {}
@@ -103,6 +130,8 @@ def case_row(name: str, out: Path) -> dict:
     """Render (once) and run one case; its row."""
     what, overrides = CASES[name]
     cap = capture(out, overrides)
+    if name in ONE_COLOUR:
+        cap = one_colour_capture(cap, cap.parent / "one_colour")
     work = out / "work" / name
     log = out / "logs" / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)

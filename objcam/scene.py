@@ -134,12 +134,15 @@ def make_plane(size: float, texture_extent: float | None = None) -> MeshData:
 
 class AlbedoValue(BaseModel):
     """A resolved albedo: a constant RGB, or an EXR texture (path relative to the scene folder). Neither: unknown;
-    ``initial`` then may name an estimate (photogrammetry's texture over the mesh's UVs) to start a joint solve."""
+    ``initial`` then may name an estimate (photogrammetry's texture over the mesh's UVs) to start a joint solve,
+    and ``uniform`` says the surface has one albedo per colour (capture.toml's ``"uniform"``), which the solve
+    estimates as one value instead of one per pixel."""
 
     model_config = ConfigDict(extra="forbid")
     rgb: tuple[float, float, float] | None = None
     texture: str | None = None
     initial: str | None = None
+    uniform: bool = False
 
     @property
     def known(self) -> bool:

@@ -153,6 +153,21 @@ def test_boolean_albedo_is_refused(tmp_path, capsys):
     assert_one_line_error(*run_scene(cap, capsys), "capture.toml", "true/false")
 
 
+def test_uniform_albedo_keyword_and_a_misspelt_one(tmp_path, capsys):
+    """``object = "uniform"`` (any case) declares one unknown albedo for the surface; anything else in quotes is a
+    texture file, so a misspelling is a missing file named in one line, not a silent per-pixel albedo."""
+    import json
+
+    cap = make_capture(tmp_path / "cap")
+    (cap / "capture.toml").write_text(TOML.replace("object = 0.5", 'object = "Uniform"'))
+    code, _ = run_scene(cap, capsys)
+    assert code == 0
+    desc = json.loads((cap / "objcam" / "scene" / "scene.json").read_text())
+    assert desc["albedo_object"] == {"rgb": None, "texture": None, "initial": None, "uniform": True}
+    (cap / "capture.toml").write_text(TOML.replace("object = 0.5", 'object = "unifrom"'))
+    assert_one_line_error(*run_scene(cap, capsys), "unifrom")
+
+
 def test_folder_where_a_file_is_expected(tmp_path, capsys):
     cap = make_capture(tmp_path / "cap")
     (cap / "targets" / "t0.exr").unlink()

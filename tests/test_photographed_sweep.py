@@ -32,3 +32,34 @@ def test_silent_means_no_better_than_a_flat_map_and_not_red():
     t = {"ssim": 0.30, "flat_ssim": 0.30, "grade": "yellow"}
     assert silent_targets({"a": t}) == ["a"]
     assert silent_targets({"a": t | {"grade": "red"}, "b": t | {"ssim": 0.31}}) == []
+
+
+def test_the_one_colour_copy_declares_the_object_and_links_the_photos(tmp_path):
+    import os
+
+    import pytest
+
+    from bench.photographed_sweep import CASES, ONE_COLOUR, one_colour_capture
+    from objcam.schemas.capture import UniformAlbedo
+
+    full = tmp_path / "full"
+    (full / "views").mkdir(parents=True)
+    (full / "objcam").mkdir()
+    (full / "views" / "v0.dng").write_bytes(b"raw")
+    (full / "objcam" / "cache").write_bytes(b"x")
+    toml = '[scene]\nobject = "object.ply"\n\n[camera]\nwhite_balance = "camera"\n'
+    (full / "capture.toml").write_text(toml)
+    dest = one_colour_capture(full, tmp_path / "one")
+    import tomllib
+
+    doc = tomllib.loads((dest / "capture.toml").read_text())
+    assert doc["albedo"] == {"object": "uniform"} and doc["camera"] == {"white_balance": "camera"}
+    assert os.path.samefile(dest / "views" / "v0.dng", full / "views" / "v0.dng")
+    assert not (dest / "objcam").exists() and (full / "capture.toml").read_text() == toml  # inputs untouched
+    from objcam.schemas.capture import AlbedoSection
+
+    assert isinstance(AlbedoSection(**doc["albedo"]).object, UniformAlbedo)
+    assert set(ONE_COLOUR.values()) <= set(CASES) and set(ONE_COLOUR) <= set(CASES)
+    (full / "capture.toml").write_text(toml + "\n[albedo]\nobject = 0.6\n")
+    with pytest.raises(ValueError, match="albedo is unknown"):
+        one_colour_capture(full, tmp_path / "two")

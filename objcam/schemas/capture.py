@@ -31,7 +31,18 @@ class TextureAlbedo(BaseModel):
     extent: float | None = Field(default=None, gt=0)
 
 
-AlbedoSpec = Union[float, RGB, TextureAlbedo]
+class UniformAlbedo(BaseModel):
+    """``"uniform"``: the surface has one albedo (per colour) of unknown value, e.g. a 3D print in one filament or
+    plain paper; the solve estimates that one value instead of one per pixel."""
+
+    model_config = ConfigDict(extra="forbid")
+    uniform: Literal[True] = True
+
+
+#: the keyword of :class:`UniformAlbedo` in capture.toml (``object = "uniform"``)
+UNIFORM = "uniform"
+
+AlbedoSpec = Union[float, RGB, TextureAlbedo, UniformAlbedo]
 
 
 class SceneSpec(BaseModel):
@@ -56,6 +67,8 @@ class AlbedoSection(BaseModel):
     def _parse(cls, v):
         if isinstance(v, bool) or (isinstance(v, list) and any(isinstance(x, bool) for x in v)):
             raise ValueError("albedo is a number in [0, 1] (or [r, g, b], or a texture), not true/false")
+        if isinstance(v, str) and v.strip().lower() == UNIFORM:
+            return UniformAlbedo()
         if isinstance(v, str):
             return TextureAlbedo(texture=v)
         if isinstance(v, list):

@@ -100,7 +100,8 @@ def solve_joint_auto(blocks: Sequence[CameraBlock | tuple], grid: EnvGrid, texel
     ls = ls_e * s_eff / s_joint
     t_rule = time.perf_counter() - t0 - t_first
     # the final solve starts from the provisional albedo; the pixels of known albedo stay held
-    blocks = [CameraBlock(b.A, b.Y, b.pixel_index, b.image_shape, r, b.fixed) for b, r in zip(blocks, first.rho)]
+    blocks = [CameraBlock(b.A, b.Y, b.pixel_index, b.image_shape, r, b.fixed, b.groups)
+              for b, r in zip(blocks, first.rho)]
     res = solve_joint(blocks, grid, texel_index, ls=ls, tol=setup.tol, **kw)
     auto = {"rule": setup.rule, "ls_relative": float(ls), "ls0_relative": setup.ls0,
             "provisional_seconds": round(t_first, 3), "criterion_seconds": round(t_rule, 3),

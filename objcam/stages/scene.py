@@ -22,7 +22,7 @@ from objcam.image_io import atomic_write_text, read_exr, write_exr, write_png
 from objcam.pipeline.stage import StageInputs, StageOutputs
 from objcam.scene import AlbedoValue, MeshData, SceneDescription, load_mesh, make_plane
 from objcam.schemas.artifacts import TargetRecord
-from objcam.schemas.capture import CaptureManifest, TextureAlbedo
+from objcam.schemas.capture import CaptureManifest, TextureAlbedo, UniformAlbedo
 from objcam.target_checks import check_in_view, check_negatives, hot_pixels, read_target
 
 NAME = "scene"
@@ -89,6 +89,8 @@ def _albedo(spec, capture: Path, out: Path, name: str) -> AlbedoValue:
         return AlbedoValue(rgb=(spec, spec, spec))
     if isinstance(spec, tuple):
         return AlbedoValue(rgb=spec)
+    if isinstance(spec, UniformAlbedo):
+        return AlbedoValue(uniform=True)
     tex = read_exr(capture / spec.texture)
     if not np.all(np.isfinite(tex)) or tex.min() < 0:
         raise InputError("albedo texture has negative, NaN or infinite values", capture / spec.texture,
@@ -236,6 +238,10 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
              if f["hot_pixels_excluded"]]
     notes += [f"{t.name}: {f['negative_pixels']:,} negative pixel(s) kept (within the noise)" for t, f in checked
               if f["negative_pixels"]]
+    uniform = [w for w, a in (("object", desc.albedo_object), ("support", desc.albedo_support)) if a.uniform]
+    if uniform:
+        metrics["uniform_albedo"] = uniform
+    said = [f"{w} (one colour)" if w in uniform else w for w in unknown]
     summary = (f"{len(obj.faces):,} faces, {metrics['object_height_m'] * 100:.1f} cm tall; {len(targets)} target(s)"
-               + (f"; unknown albedo: {', '.join(unknown)}" if unknown else "") + "".join(f"; {n}" for n in notes))
+               + (f"; unknown albedo: {', '.join(said)}" if unknown else "") + "".join(f"; {n}" for n in notes))
     return StageOutputs(metrics=metrics, summary=summary)

@@ -99,7 +99,7 @@ class SubspaceGN:
             g[l * k:(l + 1) * k] += Bl[l][p].T.astype(np.float64) @ (r * res[:, l])
             blk = ((Bl[l][p] * r2.astype(np.float32)[:, None]).T @ Bl[l][p]).astype(np.float64)
             H[l * k:(l + 1) * k, l * k:(l + 1) * k] += blk
-        free = np.flatnonzero((r > J.rho_min) & (r < 1.0) & ~J.fixed[p])
+        free = np.flatnonzero((r > J.rho_min) & (r < 1.0) & ~J.held(p))  # a group's pixels held here
         if free.size == 0:
             return
         Hrr = (sp.diags(a) + J.lp * J.GtG[p]).tocsr()[free][:, free].tocsc()
@@ -136,6 +136,7 @@ class SubspaceGN:
             RVl = J.R(l) @ Vl[l]
             H[l * k:(l + 1) * k, l * k:(l + 1) * k] += Vl[l].T @ RVl
             g[l * k:(l + 1) * k] += RVl.T @ X[:, l, c]
+        grp: dict[int, list] = {int(g): [np.zeros(L * k), 0.0, 0.0, 0.0] for g in J.group_ids}  # u, h, q, value
         for p in range(J.P):
             r = rho[p][:, c]
             if r.size == 0:
@@ -147,7 +148,16 @@ class SubspaceGN:
             if J.lp > 0:
                 self._coupled(p, r, s, res, a, Bl, H, g)
                 continue
-            free = (a > 1e-12 * (a.max() if a.size else 1.0)) & (r > J.rho_min) & (r < 1.0) & ~J.fixed[p]
+            free = (a > 1e-12 * (a.max() if a.size else 1.0)) & (r > J.rho_min) & (r < 1.0) & ~J.held(p)
+            for gid, acc in grp.items():  # a group's albedo is eliminated once over all its pixels, below
+                sel = J.groups[p] == gid
+                if sel.any():
+                    rg = float(r[sel][0])
+                    for l in range(L):
+                        acc[0][l * k:(l + 1) * k] += rg * (Bl[l][p][sel].T.astype(np.float64) @ s[sel, l])
+                    acc[1] += float(np.sum(s[sel] ** 2))
+                    acc[2] += float(np.sum(s[sel] * res[sel]))
+                    acc[3] = rg
             inv_a = np.where(free, 1.0 / np.where(free, a, 1.0), 0.0)
             # P r = r - s (s.r)/a
             pres = res - s * (np.einsum("ml,ml->m", s, res) * inv_a)[:, None]
@@ -159,6 +169,12 @@ class SubspaceGN:
                     H[l * k:(l + 1) * k, l2 * k:(l2 + 1) * k] += blk
                     if l2 != l:
                         H[l2 * k:(l2 + 1) * k, l * k:(l + 1) * k] += blk.T
+        for u, h, q, rg in grp.values():
+            # variable projection over the group's one albedo: the Schur complement of its 1 x 1 block
+            # (objcam.solvers.joint.groups), unless it sits at a bound (held there, as a pixel's)
+            if h > 0 and J.rho_min < rg < 1.0 and J.lp == 0:
+                H -= np.outer(u, u) / h
+                g -= u * (q / h)
         H = 0.5 * (H + H.T)
         try:
             fac, _ = chol(H)

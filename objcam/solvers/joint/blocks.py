@@ -39,6 +39,9 @@ class CameraBlock:
     rho0: initial albedo, (M, C), (M,) or a scalar; default :data:`DEFAULT_RHO0`.
     fixed: (M,) bool, pixels whose albedo is known: held at rho0 (clipped into [rho_min, 1]), not estimated. Any
         fixed pixel pins the scale that c rho, x / c otherwise leaves free.
+    groups: (M,) int, 0 for a pixel with an albedo of its own; g > 0 for the pixels of one surface of uniform but
+        unknown albedo (a one-colour object): every pixel of group g, in every camera, shares one albedo per
+        channel (:mod:`objcam.solvers.joint.groups`). Not with ``fixed``.
     """
 
     A: np.ndarray
@@ -47,10 +50,11 @@ class CameraBlock:
     image_shape: tuple[int, int] | None = None
     rho0: np.ndarray | float | None = None
     fixed: np.ndarray | None = None
+    groups: np.ndarray | None = None
 
 
 def as_camera_block(b: CameraBlock | Sequence) -> CameraBlock:
-    """``b`` itself, or the CameraBlock of a tuple ``(A', Y[, pixel_index, image_shape, rho0, fixed])``."""
+    """``b`` itself, or the CameraBlock of a tuple ``(A', Y[, pixel_index, image_shape, rho0, fixed, groups])``."""
     if isinstance(b, CameraBlock):
         return b
     return CameraBlock(*b)

@@ -58,6 +58,7 @@ from objcam.solvers.joint.blocks import (
     photos_mlc,
 )
 from objcam.solvers.joint.boxqp import box_kkt_residual
+from objcam.solvers.joint.groups import check_groups, group_kkt, group_terms, unify
 from objcam.solvers.joint.kernels import col_sq_norms, matmul, tmatmul, weighted_gram
 from objcam.solvers.regularization import difference_operator
 from objcam.threads import blas_threads
@@ -86,7 +87,7 @@ class JointProblem:
             raise NoValidPixelsError("joint solve: no camera blocks given -- nothing constrains the envmap")
         texel_index = np.asarray(texel_index, dtype=np.int64).ravel()
         self.n = n = texel_index.size
-        self.As, self.Ys, self.Gs, self.rho0, self.fixed = [], [], [], [], []
+        self.As, self.Ys, self.Gs, self.rho0, self.fixed, self.groups = [], [], [], [], [], []
         shape_lc = None
         for k, b in enumerate(blocks):
             A = np.asarray(b.A)
@@ -115,6 +116,8 @@ class JointProblem:
             if fx.any() and b.rho0 is None:
                 raise ValueError(f"camera {k}: fixed pixels need their albedo in rho0")
             self.fixed.append(fx)
+            self.groups.append(check_groups(b.groups, A.shape[0], fx, k))
+        self.group_ids = np.unique(np.concatenate([g[g > 0] for g in self.groups]))
         self.L, self.C = shape_lc
         self.P = len(self.As)
         self.m_total = sum(A.shape[0] for A in self.As)
@@ -197,14 +200,20 @@ class JointProblem:
                 (m, self.C),
             ).copy()
             out.append(np.clip(r, self.rho_min, 1.0))
-        return out
+        return unify(out, self.groups, self.group_ids, self.rho_min)
 
     def pin(self, rho: list[np.ndarray]) -> list[np.ndarray]:
-        """Hold the fixed pixels at their albedo (in place); returns rho."""
+        """Hold the fixed pixels at their albedo and give each group one albedo (its mean) (in place); returns
+        rho."""
         for k, fx in enumerate(self.fixed):
             if fx.any():
                 rho[k][fx] = self.fixed_vals[k][fx]
-        return rho
+        return unify(rho, self.groups, self.group_ids, self.rho_min)
+
+    def held(self, k: int) -> np.ndarray:
+        """(M_k,) bool: camera k's pixels whose albedo the per-pixel step leaves alone: known (fixed) or in a group
+        (objcam.solvers.joint.groups updates those)."""
+        return self.fixed[k] | (self.groups[k] > 0)
 
     def bounds(self, k: int, c: int) -> tuple[np.ndarray | float, np.ndarray | float]:
         """(lo, hi) of camera k's albedo in channel c: [rho_min, 1], a fixed pixel's value for both."""
@@ -375,10 +384,31 @@ class JointProblem:
         return sp.csr_matrix(H), beta
 
     def rho_kkt(self, rho, S) -> np.ndarray:
+        """(P, C) relative KKT residual of the albedo subproblem at rho: per camera its pixels' box QP (a group's
+        pixels held at their value), and each group's 1-D problem, charged to every camera holding it."""
         out = np.zeros((self.P, self.C))
-        for k, (r, s, Y) in enumerate(zip(rho, S, self.Ys)):
-            for c in range(self.C):
-                if r.shape[0]:
-                    H, beta = self.rho_system(r, s, Y, k, c, prox=False)
-                    out[k, c] = box_kkt_residual(H, beta, r[:, c], *self.bounds(k, c))
+        for c in range(self.C):
+            parts: dict[int, list] = {int(g): [] for g in self.group_ids}
+            scale = 0.0
+            for k, (r, s, Y) in enumerate(zip(rho, S, self.Ys)):
+                if not r.shape[0]:
+                    continue
+                H, beta = self.rho_system(r, s, Y, k, c, prox=False)
+                lo, hi = self.bounds(k, c)
+                gr = self.groups[k] > 0
+                if gr.any():
+                    lo, hi = np.where(gr, r[:, c], lo), np.where(gr, r[:, c], hi)
+                    for g in parts:
+                        sel = self.groups[k] == g
+                        if sel.any():
+                            parts[g].append(group_terms(H, beta, r[:, c], sel))
+                out[k, c] = box_kkt_residual(H, beta, r[:, c], lo, hi)
+                scale = max(scale, float(np.max(np.abs(beta))))
+            if parts:
+                vals = {g: float(next(r[self.groups[k] == g, c][0] for k, r in enumerate(rho)
+                                      if (self.groups[k] == g).any())) for g in parts}
+                gk = group_kkt(parts, vals, self.rho_min, scale)
+                for k in range(self.P):
+                    if (self.groups[k] > 0).any():
+                        out[k, c] = max(out[k, c], gk)
         return out

@@ -7,7 +7,9 @@ camera, solved exactly by :func:`objcam.solvers.joint.boxqp.solve_box_qp` (block
 constraints with sparse LU factorisations of the free block; its KKT residual is checked). A pixel with ``a_i ~ 0``
 (its predicted shading is zero in every target, so the data does not see its albedo) gets a proximal term
 ``delta (rho_i - rho_i^prev)^2`` with ``delta = 1e-12 max(a)``: it keeps its previous value when nothing else
-determines it, and the step still cannot increase F. Pixels of known albedo are held at their value.
+determines it, and the step still cannot increase F. Pixels of known albedo are held at their value; the pixels of
+a group (a surface of uniform unknown albedo) take their group's one value, the minimiser of its 1-D quadratic
+over every camera (:mod:`objcam.solvers.joint.groups`), after the other pixels' step.
 
 The paper's variant (``exact=False``) takes the damped clipped step ``rho <- clip(rho - beta H^{-1} (H rho -
 beta_rhs), rho_min, 1)`` instead.
@@ -18,10 +20,12 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from objcam.solvers.joint.boxqp import solve_box_qp
 from objcam.solvers.joint.context import StepContext
+from objcam.solvers.joint.groups import group_terms, group_values
 
 
 def rho_step(ctx: StepContext, rho: list[np.ndarray], S: list[np.ndarray], chans) -> list[np.ndarray]:
@@ -30,15 +34,18 @@ def rho_step(ctx: StepContext, rho: list[np.ndarray], S: list[np.ndarray], chans
     J = ctx.J
     t0 = time.perf_counter()
     rho = [r.copy() for r in rho]
+    systems: dict = {}  # (camera, channel) -> its albedo system (H, b), for the groups' step
     for k in range(J.P):
         if rho[k].shape[0] == 0:
             continue
         for c in chans:
             H, bt = J.rho_system(rho[k], S[k], J.Ys[k], k, c)
-            fx = J.fixed[k]
+            fx = J.held(k)
+            if ctx.exact and J.group_ids.size:
+                systems[(k, c)] = (H, bt)
             if ctx.exact:
                 if J.lp > 0 and fx.any():
-                    # the fixed pixels' terms move to the right-hand side of the free pixels' box QP
+                    # the held pixels' terms move to the right-hand side of the free pixels' box QP
                     fr = ~fx
                     Hc = H.tocsr()
                     r = rho[k][:, c].copy()
@@ -48,6 +55,7 @@ def rho_step(ctx: StepContext, rho: list[np.ndarray], S: list[np.ndarray], chans
                     r = solve_box_qp(H, bt, J.rho_min, 1.0, x0=rho[k][:, c], tol=ctx.qp_tol).x
                 else:
                     r = np.clip(bt / H.diagonal(), *J.bounds(k, c))
+                    r[fx] = rho[k][fx, c]  # known: their value (bounds); in a group: updated below
             else:
                 if J.lp > 0:
                     step = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(H @ rho[k][:, c] - bt)
@@ -55,5 +63,28 @@ def rho_step(ctx: StepContext, rho: list[np.ndarray], S: list[np.ndarray], chans
                     step = rho[k][:, c] - bt / H.diagonal()
                 r = np.clip(rho[k][:, c] - ctx.beta * step, *J.bounds(k, c))
             rho[k][:, c] = r
+    if ctx.exact and J.group_ids.size:
+        _group_step(J, rho, chans, systems)
     ctx.timers["rho"] += time.perf_counter() - t0
     return rho
+
+
+def _group_step(J, rho: list[np.ndarray], chans, systems: dict) -> None:
+    """Each group's albedo in each channel of ``chans`` by its 1-D quadratic over every camera at the other pixels'
+    new albedo (``systems``: (camera, channel) -> that camera's albedo system (H, b)); in place."""
+    for c in chans:
+        parts: dict[int, list] = {int(g): [] for g in J.group_ids}
+        current: dict[int, float] = {}
+        for (k, cc), sysk in systems.items():
+            if cc != c:
+                continue
+            H, bt = sysk
+            for g in parts:
+                sel = J.groups[k] == g
+                if sel.any():
+                    parts[g].append(group_terms(sp.csr_matrix(H), bt, rho[k][:, c], sel))
+                    current.setdefault(g, float(rho[k][sel, c][0]))
+        vals = group_values({g: t for g, t in parts.items() if t}, current, J.rho_min)
+        for k in range(J.P):
+            for g, v in vals.items():
+                rho[k][J.groups[k] == g, c] = v

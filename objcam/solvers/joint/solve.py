@@ -157,6 +157,8 @@ def solve_joint(
     J = JointProblem(blocks, grid, texel_index, ls, lr, lp, relative, rho_min, prior=prior, edge_eps=edge_eps,
                      basis=basis)
     exact = method == "exact"
+    if J.group_ids.size and not exact:
+        raise ValueError("albedo groups (uniform surfaces) need method='exact'")
     ctx = StepContext(J, exact=exact, alpha=alpha, beta=beta, qp_tol=qp_tol, fast_gram=fast_gram,
                       use_pcg=exact and xsolver == "pcg", cg_refresh=cg_refresh)
     run = Alternation(ctx, tol=tol, max_iter=max_iter, scale_step=scale_step, accelerate=accelerate,

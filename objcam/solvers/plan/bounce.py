@@ -16,8 +16,9 @@ import numpy as np
 
 from objcam.envmap import EnvGrid
 from objcam.solvers.joint import albedo_at
+from objcam.solvers.joint.groups import set_values, values_of
 from objcam.solvers.jointauto import JointSetup, solve_joint_auto
-from objcam.solvers.plan.defaults import BOUNCE_FIRST_TOL
+from objcam.solvers.plan.defaults import BOUNCE_FIRST_TOL, BOUNCE_LEVELS
 from objcam.solvers.plan.params import SolveParams
 from objcam.transport.gather import bounce_delta
 
@@ -31,7 +32,8 @@ def solve_with_refits(cams: list[dict], comp, grid: EnvGrid, setup: JointSetup, 
     def solve(rho, stp):
         """The joint solve of this problem's cameras (their current A') from the albedo ``rho`` (one per camera)."""
         return solve_joint_auto([(c["A"], c["Y"], c["tr"].pixel_index[c["rows"]], c["tr"].image_shape, r,
-                                  c["fixed"]) for c, r in zip(cams, rho)], grid, comp.texel_index, stp, sigma=sigma)
+                                  c["fixed"], c.get("groups")) for c, r in zip(cams, rho)], grid, comp.texel_index,
+                                stp, sigma=sigma)
 
     t0 = time.perf_counter()
     # also when the envmap is unconstrained: its shape comes from the priors, but the refit makes A's
@@ -61,12 +63,19 @@ def solve_with_refits(cams: list[dict], comp, grid: EnvGrid, setup: JointSetup, 
                   "pixel_stride": stride, "pixels": first_pixels}
     n_refits = params.bounce_refits if refit_next else 0
     loose = first is not setup  # res comes from a solve stopped early (a refit was to follow)
+    level, search = None, None
+    uniform = any(c.get("groups") is not None for c in cams)
+    fit = params.bounce_level == "fit" or (params.bounce_level == "auto" and uniform)
+    if n_refits and fit and not any(c["fixed"].any() for c in cams):
+        level, search = fit_bounce_level(cams, comp, res, params, lambda: solve(res.rho, first)[0])
     for i in range(n_refits):
         t1 = time.perf_counter()
-        more = refit_bounce(cams, comp, res, params)
+        more = refit_bounce(cams, comp, res, params, level)
         for r in more:
             r["seconds"] = round(time.perf_counter() - t1, 3)
             r["first_solve"] = first_info
+            if search is not None:
+                r["level_search"] = search
         if not more:
             break
         # every solve but the last one stops early too: another refit redoes its final decimals
@@ -80,6 +89,60 @@ def solve_with_refits(cams: list[dict], comp, grid: EnvGrid, setup: JointSetup, 
         # the last solve stopped early for a refit that found no cell to redo: finish it at the requested tol
         res, auto = solve(res.rho, setup)
     return res, auto, refits
+
+
+def fit_bounce_level(cams: list[dict], comp, res, params: SolveParams, solve) -> tuple[float | None, dict | None]:
+    """The support's mean albedo for the refitted interreflections where no pixel's albedo is known.
+
+    The joint model ``y = rho A' x`` leaves one scale free (c rho, x / c fit alike), except in the light the
+    support throws onto the object, which grows with the support's albedo itself; at the transport's guess (0.5)
+    a brighter support's missing bounce light on the object's sides was made up by the low sky (bench/results.md,
+    session 50). So each level of BOUNCE_LEVELS is tried (the refit at it, then ``solve()``: the joint solve
+    from the first solve's albedo, stopped early as that one) from the middle downhill, and the minimum of the
+    parabola through the lowest and its neighbours is taken (:func:`downhill_minimum`). Returns (level, record)
+    or (None, None) when there is nothing to refit."""
+    t0 = time.perf_counter()
+    levels = list(BOUNCE_LEVELS)
+    tried: dict[float, float] = {}
+
+    def objective(lv: float) -> float | None:
+        if lv not in tried:
+            if not refit_bounce(cams, comp, res, params, lv):
+                return None
+            tried[lv] = float(np.sum(solve().objective))
+        return tried[lv]
+
+    if objective(levels[len(levels) // 2]) is None:
+        return None, None
+    level = downhill_minimum(levels, objective, tried)
+    return level, {"levels": {f"{k:g}": round(v, 4) for k, v in sorted(tried.items())}, "chosen": round(level, 4),
+                   "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def downhill_minimum(levels: list[float], objective, tried: dict[float, float]) -> float:
+    """The minimiser of ``objective`` over the sorted grid ``levels`` refined by a parabola: from the values in
+    ``tried`` (level -> objective; at least one, updated as more are evaluated), evaluate the untried neighbours of
+    the lowest so far until it has both (or is at an end), then return the vertex of the parabola through it and
+    its neighbours, clipped to their bracket; at an end, of the parabola through the three end levels, clipped to
+    the end's interval. ``levels``: at least three."""
+    while True:
+        j = levels.index(min(tried, key=tried.get))
+        nxt = [levels[i] for i in (j - 1, j + 1) if 0 <= i < len(levels) and levels[i] not in tried]
+        if not nxt:
+            break
+        objective(nxt[0])
+    j = levels.index(min(tried, key=tried.get))
+    k = min(max(j, 1), len(levels) - 2)  # the middle of the three levels the parabola goes through
+    for i in (k - 1, k, k + 1):
+        if levels[i] not in tried:
+            objective(levels[i])
+    (a, fa), (b, fb), (c, fc) = [(levels[i], tried[levels[i]]) for i in (k - 1, k, k + 1)]
+    lo, hi = (a, c) if j == k else ((a, b) if j < k else (b, c))
+    den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
+    if den >= 0:  # not convex (a < b < c: convex is den < 0): the lowest level tried
+        return float(levels[j])
+    v = b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den
+    return float(np.clip(v, lo, hi))
 
 
 def subsample(cams: list[dict], stride: int) -> list[np.ndarray]:
@@ -99,16 +162,20 @@ def solve_subsampled(cams: list[dict], subs: list[np.ndarray], grid: EnvGrid, te
     envmaps (:func:`objcam.solvers.joint.albedo_at`, the exact rho-step when lp = 0). Returns (result with rho for
     all rows, auto, pixels fitted)."""
     blocks = [(c["A"][s], c["Y"][s], c["tr"].pixel_index[c["rows"]][s], c["tr"].image_shape, c["rho0"][s],
-               c["fixed"][s]) for c, s in zip(cams, subs)]
+               c["fixed"][s], None if c.get("groups") is None else c["groups"][s]) for c, s in zip(cams, subs)]
     res, auto = solve_joint_auto(blocks, grid, texel_index, setup, sigma=sigma)
     rho = [albedo_at(c["A"], c["Y"], res.x, c["rho0"], c["fixed"]) for c in cams]
+    # a uniform surface's pixels take the one value the subsample fitted (objcam.solvers.joint.groups)
+    set_values(rho, [c.get("groups") for c in cams], values_of(res.rho, [b[6] for b in blocks]))
     return dataclasses.replace(res, rho=rho), auto, sum(int(s.size) for s in subs)
 
 
-def refit_bounce(cams: list[dict], comp, res, params: SolveParams) -> list[dict]:
+def refit_bounce(cams: list[dict], comp, res, params: SolveParams, level: float | None = None) -> list[dict]:
     """Redo the interreflections of each camera's A' (in place) with the support's cells at the albedo the joint
     solve estimated over them (objcam.transport.gather.bounce_delta); returns one summary per camera changed
-    (empty: nothing to redo, e.g. a direct-light A, the path-traced correction, or no cell seen)."""
+    (empty: nothing to redo, e.g. a direct-light A, the path-traced correction, or no cell seen). ``level``: where
+    no pixel's albedo is known, the mean albedo the support's seen cells are given (:func:`fit_bounce_level`);
+    None: the transport's guess."""
     if params.bounce_refits <= 0 or params.method != "exact" or res.diverged:
         return []
     out = []
@@ -129,8 +196,10 @@ def refit_bounce(cams: list[dict], comp, res, params: SolveParams) -> list[dict]
             pn = parts["pixel_node"][rows]
             on = (pn >= 0) & tr.unknown_albedo[rows]
             guess = float(np.mean(parts["node_rho"][pn[on]].mean(axis=1))) if on.any() else 0.0
-            k = guess / float(np.mean(rho[on])) if on.any() and np.mean(rho[on]) > 0 else 1.0
-            how = "mean over the support kept at the transport's guess"
+            target = guess if level is None else float(level)
+            k = target / float(np.mean(rho[on])) if on.any() and np.mean(rho[on]) > 0 else 1.0
+            how = ("mean over the support kept at the transport's guess" if level is None
+                   else f"mean over the support at {target:.3g}, the level the joint objective chose")
         dA, info = bounce_delta(parts, k * rho, rows)
         if dA is None:
             continue

@@ -105,6 +105,10 @@ JOINT_EDGE_STEPS = 1
 #: SSIM after the second solve 0.605 / 0.608 / 0.608 / 0.606. 2 keeps the subsample well over-determined: per
 #: channel L M / 4 equations against M / 4 + L N unknowns, 1.7x there (stride 3: 1.07x).
 BOUNCE_FIRST_STRIDE = 2
+#: ``solve.bounce_level=fit``: the mean support albedos tried for the refitted interreflections when no pixel's
+#: albedo is known (its level is otherwise free): dark paper to white paper; the best by the joint objective and
+#: its neighbours give a parabola's minimum (bench/results.md, session 50)
+BOUNCE_LEVELS = (0.3, 0.45, 0.6, 0.75, 0.9)
 #: Joint solve: lp when not given. With one illumination per camera the albedo of each pixel can absorb the whole
 #: image, so the albedo prior is what separates them; with two or more the data separate them and a smoothness
 #: prior only blurs the albedo's edges (bench/results.md, joint ablation).

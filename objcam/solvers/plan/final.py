@@ -20,6 +20,7 @@ from objcam.solvers.basis import restrict_weak, solved_edges, texel_basis
 from objcam.solvers.edges import solve_edges
 from objcam.solvers.joint import weighted_gram
 from objcam.solvers.joint.blocks import DEFAULT_RHO_MIN
+from objcam.solvers.joint.groups import least_squares_values, set_values, values_of
 from objcam.solvers.joint.scale_step import known_pixel_scale
 from objcam.solvers.plan.defaults import ALBEDO_TV_FACTOR, ALBEDO_TV_TOP, EDGE_EPS_KNOWN, FINAL_EARLY_STEPS
 from objcam.solvers.plan.params import SolveParams
@@ -58,9 +59,10 @@ def final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: n
     for k in range(first, rounds):
         if tv:
             for p, c in enumerate(cams):
-                warm[p] = tv_albedo(c["A"], c["Y"], X, rho[p], c["fixed"], c["tr"].pixel_index[c["rows"]],
+                warm[p] = tv_albedo(c["A"], c["Y"], X, rho[p], held(c), c["tr"].pixel_index[c["rows"]],
                                     c["tr"].image_shape, contrast, warm=warm[p])
                 rho[p] = warm[p].rho
+            uniform_step(cams, X, rho)
         # a round's envmaps only feed the next albedo step, except the last one's: fewer reweightings before it
         steps = params.edge_steps if k == rounds - 1 else min(params.edge_steps, FINAL_EARLY_STEPS)
         X, info = final_envmaps(cams, rho, grid, texel_index, params, ls, steps)
@@ -82,6 +84,23 @@ def final_step(scene, data, cams: list[dict], res, grid: EnvGrid, texel_index: n
                           "regions": [t.regions for t in warm], "gcv": chosen}
                          if tv else None)
     return X, rho, info
+
+
+def held(c: dict) -> np.ndarray:
+    """(M,) bool: camera ``c``'s pixels the TV step leaves alone: of known albedo, or on a surface of one unknown
+    albedo (those take their group's value, :func:`uniform_step`)."""
+    g = c.get("groups")
+    return c["fixed"] if g is None else c["fixed"] | (g > 0)
+
+
+def uniform_step(cams: list[dict], X: np.ndarray, rho: list[np.ndarray]) -> None:
+    """Each uniform surface's one albedo by least squares at the envmaps X over every camera (in place; the final
+    step's counterpart of the joint solve's group step, objcam.solvers.joint.groups)."""
+    groups = [c.get("groups") for c in cams]
+    if all(g is None for g in groups):
+        return
+    vals = least_squares_values([c["A"] for c in cams], [c["Y"] for c in cams], X, groups, DEFAULT_RHO_MIN)
+    set_values(rho, groups, vals)
 
 
 def target_sigmas(scene, data, cams: list[dict]) -> list[np.ndarray]:
@@ -108,15 +127,17 @@ def choose_contrast(scene, data, cams: list[dict], X0: np.ndarray, rho0: list[np
     or the regions stop merging. Returns the best candidate's (X, rho, TV results per camera, final_envmaps info)
     and the record {contrast, candidates}."""
     sig = target_sigmas(scene, data, cams)
-    n_fixed = sum(int(c["fixed"].sum()) for c in cams)
+    n_fixed = sum(int(held(c).sum()) for c in cams)
+    n_groups = len(values_of([np.zeros((c["rows"].size, 1)) for c in cams], [c.get("groups") for c in cams]))
     best, cands, prev = None, [], [None] * len(cams)
     for contrast in ladder(params.albedo_tv, ALBEDO_TV_TOP, ALBEDO_TV_FACTOR):
         # warm-started from the previous contrast's TV solution (its dual is feasible for a larger weight)
         t0 = time.perf_counter()
-        tvs = [tv_albedo(c["A"], c["Y"], X0, rho0[p], c["fixed"], c["tr"].pixel_index[c["rows"]],
+        tvs = [tv_albedo(c["A"], c["Y"], X0, rho0[p], held(c), c["tr"].pixel_index[c["rows"]],
                          c["tr"].image_shape, contrast, warm=prev[p]) for p, c in enumerate(cams)]
         rho = [t.rho for t in tvs]
-        regions = sum(t.regions if t.regions is not None else t.rho.shape[0] for t in tvs) - n_fixed
+        uniform_step(cams, X0, rho)
+        regions = sum(t.regions if t.regions is not None else t.rho.shape[0] for t in tvs) - n_fixed + n_groups
         if cands and regions == cands[-1].regions:
             break  # the same partition: nothing left to merge
         t1 = time.perf_counter()

@@ -175,6 +175,14 @@ class SolveParams(BaseModel):
                                "gather.bounce_delta; A with the gather's parts only). Measured on the dots scene: "
                                "envmap SSIM 0.543 -> 0.595, relative RMSE 0.87 -> 0.66, ~1.4x the solve time. 0: keep "
                                "the guess")
+    bounce_level: Literal["auto", "fit", "guess"] = Field(
+        "auto", description="unknown albedo with a bounce refit and no pixel of known albedo: the support's albedo "
+        "level the refitted interreflections use, which the joint solve's scale leaves free. 'fit': the level "
+        "among BOUNCE_LEVELS (mean support albedo) whose solve has the lowest objective, refined by a parabola "
+        "(the interreflections are the one part of the model that sees the albedo's absolute level); 'guess': "
+        "the transport's guess (0.5); 'auto': fit where a surface is declared \"uniform\", else the guess (with "
+        "an albedo per object pixel each absorbs the bounce's level and the fit chose 0.67-0.9 where one colour "
+        "chose 0.5-0.8, worse on 5 of 21 targets: bench/results.md, session 50)")
     first_solve_stride: int = Field(BOUNCE_FIRST_STRIDE, ge=1, le=8, description="unknown albedo with a bounce "
                                     "refit: the solve before the refit fits one pixel in stride x stride (with "
                                     "two or more illuminations; every pixel's albedo then follows from its least "

@@ -33,6 +33,7 @@ from objcam.errors import StageError
 from objcam.solvers.assemble import grey_rho_free
 from objcam.solvers.basis import texel_basis
 from objcam.solvers.jointauto import JointSetup
+from objcam.solvers.joint.groups import values_of
 from objcam.solvers.plan.bounce import solve_with_refits
 from objcam.solvers.plan.defaults import (
     EDGE_EPS_JOINT,
@@ -75,7 +76,9 @@ def solve_unknown(scene, data: dict[str, TargetData], params: SolveParams, comp,
     # do not constrain the envmap (its shape then comes from the priors; measured: image residual 0.000, SSIM 0.13
     # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); the bounce refit still runs
     # (objcam.solvers.plan.bounce: the export's render must match the prediction)
-    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) for c in cams)
+    # (a surface declared "uniform" constrains it: one albedo over the object's varied normals leaves its shading)
+    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) and c["groups"] is None
+                                   for c in cams)
     # the albedo's TV step and the envmaps at that albedo follow the joint solve (objcam.solvers.plan.final)
     with_final = (params.final_envmap == "known" and params.method == "exact" and params.prior == "edges"
                   and not unconstrained)
@@ -111,12 +114,30 @@ def mixed_pixels(tr) -> np.ndarray:
     return (of > 0) & (of < 1) & np.asarray(tr.unknown_albedo, bool)
 
 
+#: objcam.solvers.joint's group labels of the surfaces capture.toml declares "uniform"
+GROUP_OF = {"object": 1, "support": 2}
+
+
+def uniform_groups(desc, tr, rows: np.ndarray) -> np.ndarray | None:
+    """(M,) int group labels of the rows ``rows`` of the Transport ``tr`` (objcam.solvers.joint.groups): the
+    pixels wholly on a surface whose albedo ``desc`` (SceneDescription) declares uniform and unknown share one
+    albedo (GROUP_OF); 0 elsewhere. None when no surface is declared uniform."""
+    of = np.asarray(tr.object_fraction)[rows]
+    unknown = np.asarray(tr.unknown_albedo, bool)[rows]
+    out = np.zeros(rows.size, np.int64)
+    for which, on in (("object", of >= 1.0), ("support", of <= 0.0)):
+        if getattr(desc, f"albedo_{which}").uniform:
+            out[on & unknown] = GROUP_OF[which]
+    return out if out.any() else None
+
+
 def camera_blocks(scene, data: dict[str, TargetData], params: SolveParams, comp, tr_of_cam: dict,
                   names_of: dict) -> list[dict]:
     """Per camera of the problem, a dict: key, tr (Transport), rows (M,) its usable rows, A (M, N) float32 its
     rho-free transport over ``comp.texel_index``, Y (M, L, 3) the targets, rho0 (M, 3) the starting albedo,
     fixed (M,) bool the pixels held at a known albedo, targets (L names), sigma (the discrepancy rule's noise per
-    target, or None), n_mixed (silhouette pixels left out)."""
+    target, or None), n_mixed (silhouette pixels left out), groups ((M,) int: the pixels of a surface of one
+    unknown albedo, :func:`uniform_groups`, or None)."""
     cams = []
     for cam in comp.cameras:
         tr = tr_of_cam[cam]
@@ -140,9 +161,10 @@ def camera_blocks(scene, data: dict[str, TargetData], params: SolveParams, comp,
         # absolute albedo error 19% -> 1.5%). The paper's damped steps estimate every pixel's albedo, as the
         # method does: held pixels made them diverge there (objective x10 by sweep 8, no scale step to follow)
         fixed = ~tr.unknown_albedo[rows] if params.method == "exact" else np.zeros(rows.size, bool)
+        groups = uniform_groups(scene.description, tr, rows) if params.method == "exact" else None
         sig = [discrepancy_sigma(scene.target(t), data[t].y[rows], params.auto_reg) for t in tnames]
         cams.append(dict(key=cam, tr=tr, rows=rows, A=A, Y=Y, rho0=rho0, fixed=fixed, targets=tnames, sigma=sig,
-                         n_mixed=n_mixed))
+                         n_mixed=n_mixed, groups=groups))
     return cams
 
 
@@ -188,6 +210,10 @@ def unknown_solutions(params: SolveParams, comp, grid: EnvGrid, cams: list[dict]
     # the texels the final step left out as weak (weak_texels=exclude) are not solved: 0 and unmarked
     mask = texel_mask(grid, comp.texel_index if record.solved is None else comp.texel_index[record.solved])
     n_held = int(sum(int(c["fixed"].sum()) for c in cams))  # pixels held at their known albedo
+    # the surfaces of one unknown albedo: their value (at the solve's scale) and pixels
+    gvals = values_of(res.rho, [c.get("groups") for c in cams])
+    uniform = {name: [round(float(v), 5) for v in gvals[g]] for name, g in GROUP_OF.items() if g in gvals}
+    n_uniform = int(sum(int((c["groups"] > 0).sum()) for c in cams if c.get("groups") is not None))
     per_target: dict[str, TargetSolution] = {}
     for p, c in enumerate(cams):
         tr, rows = c["tr"], c["rows"]
@@ -222,6 +248,8 @@ def unknown_solutions(params: SolveParams, comp, grid: EnvGrid, cams: list[dict]
                 "pixels_excluded": int(tr.pixel_index.size - rows.size),
                 "pixels_excluded_mixed": c["n_mixed"],
                 "pixels_albedo_estimated": int(alb_mask.sum()),
+                # declared "uniform" in capture.toml: one albedo per surface and colour (objcam.solvers.joint.groups)
+                "albedo_uniform": uniform or None, "pixels_albedo_uniform": n_uniform,
                 "solve_seconds": record.solve_seconds, "iterations": int(res.iterations),
                 "converged": bool(res.converged), "message": res.message,
                 "kkt_residual_max": (record.final["kkt_residual_max"] if record.final

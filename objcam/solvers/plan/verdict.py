@@ -44,7 +44,8 @@ No ground truth is used: every measure comes from the photo, the model and the s
   the pixels it fitted.
 * the transport's ``auto`` decision margin (objcam.transport.auto) when it left interreflections out.
 * ``object_albedo_unknown``: the share of the object's pixels (object_fraction >= 1/2) whose albedo the solve
-  estimated. Where it is most of them, the low sky comes out too bright: measured on photographed captures with
+  estimated per pixel (0 where capture.toml declares the object "uniform": one value for all of it, which kept
+  the low sky near the level a given albedo gives, session 50). Where it is most of them, the low sky comes out too bright: measured on photographed captures with
   every albedo unknown, the 0-10 deg band at 4-10x the truth's energy, 2-3x with the object's albedo given, and
   the object's albedo estimated low (bench/results.md, session 49). Light a few degrees up reaches the object's
   sides and barely the plane, so that band's level follows the object's albedo against the support's (given 25%
@@ -385,7 +386,9 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float, full: bool
         if "ss_profile_fitted" in test:  # taken within the map's own misfit beyond the noise, not within a spread
             rec["sky_profile_by_misfit"] = bool(test["ss_profile_fitted"] - test["ss_map"] > test["ss_spread"])
     on_object = np.asarray(tr.object_fraction) >= 0.5
-    rec["object_albedo_unknown"] = float(np.asarray(tr.unknown_albedo)[on_object].mean()) if on_object.any() else 0.0
+    one_colour = "object" in (sol.info.get("albedo_uniform") or {})  # estimated as one value, not per pixel
+    rec["object_albedo_unknown"] = (float(np.asarray(tr.unknown_albedo)[on_object].mean())
+                                    if on_object.any() and not one_colour else 0.0)
     metrics = tr.attrs.get("metrics", {}) if isinstance(tr.attrs, dict) else {}
     if metrics.get("auto_choice") == "direct" and "auto_margin" in metrics:
         rec["transport_margin"] = float(metrics["auto_margin"])
@@ -498,9 +501,9 @@ def grade(m: dict, unconstrained: bool = False) -> tuple[str, list[str]]:
     if mg is not None and mg > VERDICT_MARGIN_YELLOW:
         yellow.append(f"interreflections left out by a close margin ({mg:.2f} of the threshold)")
     if not unconstrained and m.get("object_albedo_unknown", 0.0) > 0.5:
-        yellow.append("the object's albedo is unknown: with it estimated the low sky (a few degrees above the "
-                      "horizon) comes out too bright, several times the truth on the bench's photographed captures "
-                      "(give [albedo] object in capture.toml)")
+        yellow.append("the object's albedo is unknown: with it estimated per pixel the low sky (a few degrees above "
+                      "the horizon) comes out too bright, several times the truth on the bench's photographed "
+                      "captures (give [albedo] object in capture.toml: its value, or \"uniform\" for one colour)")
     if m.get("noise_source") == "unknown":
         yellow.append("noise unknown: give noise_sigma in capture.toml")
     if red:
