@@ -17,7 +17,8 @@ Found by it (session 48, bench/results.md): two shots from one tripod posed as t
 solved alone, red), a 0-degree "triangulation" from those two shots (board residual 83 mm, red), PnP on corners
 along one line (NaN, a traceback), the registration starting twice in the wrong basin (refused); session 49: a
 ring's hole, which the masks fill, counted against its registration (dark_torus refused; now solved), and two
-silent maps not fixed (mug rot0, thin_frame rot200: no better than a uniform sky, yellow, known geometry the same).
+silent maps not fixed (mug rot0, thin_frame rot200: no better than a uniform sky, yellow, known geometry the same);
+session 50: the same photos with the object declared one colour (``ONE_COLOUR``: ``object = "uniform"``).
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ CASES: dict[str, tuple[str, dict]] = {
 }
 #: cases that are another case's photos with capture.toml declaring the object one colour (``object =
 #: "uniform"``, its value still unknown; session 50): name -> the case it copies
-ONE_COLOUR = {f"{c}_one_colour": c for c in ("two_tripod", "sphere_city", "mug", "thin_frame")}
+ONE_COLOUR = {f"{c}_one_colour": c for c in ("two_tripod", "sphere_city", "mug", "thin_frame", "courtyard_turned")}
 CASES |= {n: (f"{CASES[c][0]}; the object declared one colour (object = \"uniform\")", CASES[c][1])
           for n, c in ONE_COLOUR.items()}
 

@@ -96,3 +96,38 @@ def test_a_group_shares_its_albedo_across_cameras_and_holds_its_pixels_apart():
                                  cams[0].groups)], grid, keep)
     with pytest.raises(ValueError, match="method='exact'"):
         solve_joint(cams, grid, keep, method="paper")
+
+
+def test_two_surfaces_each_one_colour():
+    """The object and the support each declared one colour: two groups, each one value, their ratio the truth's
+    (the scale is free: only ratios are data)."""
+    grid, keep, blocks, x_true, _ = joint_problem(n_targets=2, seed=2)
+    b = blocks[0]
+    top = b.pixel_index // 20 < 10
+    rho = np.where(top[:, None], [0.6, 0.5, 0.4], [0.3, 0.35, 0.45])
+    Y = np.einsum("mn,nlc->mlc", b.A.astype(np.float64), x_true) * rho[:, None, :]
+    groups = np.where(top, 1, 2)
+    res = solve_joint([CameraBlock(b.A, Y, None, None, None, None, groups)], grid, keep, tol=1e-9, max_iter=300)
+    r = res.rho[0]
+    assert np.ptp(r[top], axis=0).max() == 0.0 and np.ptp(r[~top], axis=0).max() == 0.0
+    np.testing.assert_allclose(r[top][0] / r[~top][0], np.array([0.6, 0.5, 0.4]) / [0.3, 0.35, 0.45], rtol=0.02)
+    ev = evaluate_joint(res.x, res.rho, x_true, [rho], grid, keep)
+    assert ev["rho_rel_rmse"] < 0.02 and np.max(res.kkt_rho) < 1e-4
+
+
+def test_uniform_groups_label_the_pixels_wholly_on_a_declared_surface():
+    from types import SimpleNamespace
+
+    from objcam.scene import AlbedoValue
+    from objcam.solvers.plan.unknown import GROUP_OF, uniform_groups
+
+    tr = SimpleNamespace(object_fraction=np.array([1.0, 1.0, 0.5, 0.0, 0.0, 1.0]),
+                         unknown_albedo=np.array([True, True, True, True, True, False]))
+    rows = np.arange(6)
+    desc = SimpleNamespace(albedo_object=AlbedoValue(uniform=True), albedo_support=AlbedoValue())
+    np.testing.assert_array_equal(uniform_groups(desc, tr, rows), [1, 1, 0, 0, 0, 0])  # known / mixed: none
+    desc.albedo_support = AlbedoValue(uniform=True)
+    np.testing.assert_array_equal(uniform_groups(desc, tr, rows[1:]), [1, 0, 2, 2, 0])
+    assert GROUP_OF == {"object": 1, "support": 2}
+    assert uniform_groups(SimpleNamespace(albedo_object=AlbedoValue(), albedo_support=AlbedoValue()), tr,
+                          rows) is None

@@ -29,7 +29,7 @@ def solve_summary(per_target: dict[str, dict], method: str, total: float) -> tup
                 "or a smaller solve.alpha. " if div else "")
                + (f"WARNING: {', '.join(free)}: one illumination and every albedo unknown, so the albedo alone can "
                   "explain the photo and the envmap comes from the priors, not the data; fix: give the support's or "
-                  "the object's albedo in capture.toml [albedo], or "
+                  "the object's albedo in capture.toml [albedo] (a value, or \"uniform\" for one colour), or "
                   + ("photograph two or more illuminations. "
                      if len({per_target[k].get("illumination", k) for k in free}) < 2 else
                      "photograph these illuminations from one camera position: each has a camera of its own, and "
