@@ -392,6 +392,9 @@ def test_a_one_colour_object_is_solved_for_one_albedo(capture, tmp_path):
             np.testing.assert_allclose(alb[on[0]], info["albedo_uniform"]["object"], atol=1e-5)
             assert info["scale_ambiguous"] and info["envmap_constrained_by_data"]
             assert info["verdict"]["object_albedo_unknown"] == 0.0  # one value: the low sky's warning stays out
+            assert main(["run", str(cap), *RUN, "--set", "evaluate.scale_invariant=true"]) == 0  # + the report
+            html = (cap / "objcam" / "report" / "index.html").read_text()
+            assert "One colour each, as capture.toml declares" in html and "object (" in html
         else:
             assert info["albedo_uniform"] is None and info["verdict"]["object_albedo_unknown"] == 1.0
     uni, pix = out["uniform"]["cam0_rot0"], out["pixel"]["cam0_rot0"]

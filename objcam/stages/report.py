@@ -100,6 +100,12 @@ def _albedo_panel(sd: Path, ed: Path, m: dict | None, png) -> str:
     if est is None:
         return ""
     parts = ["<h3>Recovered albedo</h3>"]
+    info = _json(sd / "solve.json")
+    uniform = info.get("albedo_uniform") if isinstance(info, dict) else None
+    if uniform:  # surfaces capture.toml declares one colour: one value each, not one per pixel
+        said = "; ".join(f"{name} ({', '.join(H.fmt(v) for v in rgb)})" for name, rgb in uniform.items())
+        parts.append(f"<p>One colour each, as capture.toml declares (<code>\"uniform\"</code>): {H.esc(said)}, "
+                     "at the solve's scale.</p>")
     if m and m.get("albedo_relative_rmse") is not None:
         parts.append(f"<p>Albedo relative RMSE <strong>{H.esc(H.fmt(m['albedo_relative_rmse']))}</strong>, SSIM "
                      f"<strong>{H.esc(H.fmt(m.get('albedo_ssim')))}</strong> (after the best-fit scale per "
