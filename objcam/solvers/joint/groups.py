@@ -85,6 +85,11 @@ def group_kkt(parts: dict[int, list[tuple[float, float]]], values: dict[int, flo
     return worst / scale if scale > 0 else worst
 
 
+def labels(groups: list[np.ndarray | None]) -> set[int]:
+    """The group labels (> 0) used by any camera."""
+    return {int(g) for gr in groups if gr is not None for g in np.unique(gr[gr > 0])}
+
+
 def values_of(rho: list[np.ndarray], groups: list[np.ndarray | None]) -> dict[int, np.ndarray]:
     """{group: its albedo (C,)} read from the first of its pixels (rho: per camera (M_p, C))."""
     out: dict[int, np.ndarray] = {}

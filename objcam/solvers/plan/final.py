@@ -20,7 +20,7 @@ from objcam.solvers.basis import restrict_weak, solved_edges, texel_basis
 from objcam.solvers.edges import solve_edges
 from objcam.solvers.joint import weighted_gram
 from objcam.solvers.joint.blocks import DEFAULT_RHO_MIN
-from objcam.solvers.joint.groups import least_squares_values, set_values, values_of
+from objcam.solvers.joint.groups import labels, least_squares_values, set_values
 from objcam.solvers.joint.scale_step import known_pixel_scale
 from objcam.solvers.plan.defaults import ALBEDO_TV_FACTOR, ALBEDO_TV_TOP, EDGE_EPS_KNOWN, FINAL_EARLY_STEPS
 from objcam.solvers.plan.params import SolveParams
@@ -128,7 +128,7 @@ def choose_contrast(scene, data, cams: list[dict], X0: np.ndarray, rho0: list[np
     and the record {contrast, candidates}."""
     sig = target_sigmas(scene, data, cams)
     n_fixed = sum(int(held(c).sum()) for c in cams)
-    n_groups = len(values_of([np.zeros((c["rows"].size, 1)) for c in cams], [c.get("groups") for c in cams]))
+    n_groups = len(labels([c.get("groups") for c in cams]))  # each one region of its own
     best, cands, prev = None, [], [None] * len(cams)
     for contrast in ladder(params.albedo_tv, ALBEDO_TV_TOP, ALBEDO_TV_FACTOR):
         # warm-started from the previous contrast's TV solution (its dual is feasible for a larger weight)

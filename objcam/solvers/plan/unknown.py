@@ -77,7 +77,7 @@ def solve_unknown(scene, data: dict[str, TargetData], params: SolveParams, comp,
     # on the e2e bench's unknown-albedo capture against 0.47 with the albedo given); the bounce refit still runs
     # (objcam.solvers.plan.bounce: the export's render must match the prediction)
     # (a surface declared "uniform" constrains it: one albedo over the object's varied normals leaves its shading)
-    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) and c["groups"] is None
+    unconstrained = L == 1 and all(bool(c["tr"].unknown_albedo[c["rows"]].all()) and c.get("groups") is None
                                    for c in cams)
     # the albedo's TV step and the envmaps at that albedo follow the joint solve (objcam.solvers.plan.final)
     with_final = (params.final_envmap == "known" and params.method == "exact" and params.prior == "edges"
