@@ -117,6 +117,7 @@ def least_squares_values(As: list[np.ndarray], Ys: list[np.ndarray], X: np.ndarr
     """{group: (C,)} each group's albedo by least squares over all its pixels and the L targets at the envmaps X
     (N, L, C), without an albedo prior: ``sum_i beta_i / sum_i a_i`` (objcam.solvers.joint.albedo.albedo_normal's
     terms), clipped to [rho_min, 1]. As: per camera A' (M_p, N); Ys: (M_p, L, C)."""
+    from objcam.solvers.joint.albedo import albedo_normal
     from objcam.solvers.joint.kernels import matmul
 
     num: dict[int, np.ndarray] = {}
@@ -125,8 +126,9 @@ def least_squares_values(As: list[np.ndarray], Ys: list[np.ndarray], X: np.ndarr
         if gr is None or not (gr > 0).any():
             continue
         S = matmul(A, X.reshape(X.shape[0], -1)).reshape(Y.shape)
+        terms = [albedo_normal(S[:, :, c], Y[:, :, c], None) for c in range(Y.shape[2])]  # (a, beta) per channel
         for g in np.unique(gr[gr > 0]):
             sel = gr == g
-            num[int(g)] = num.get(int(g), 0.0) + np.einsum("mlc,mlc->c", S[sel], Y[sel])
-            den[int(g)] = den.get(int(g), 0.0) + np.einsum("mlc,mlc->c", S[sel], S[sel])
+            num[int(g)] = num.get(int(g), 0.0) + np.array([b[sel].sum() for _, b in terms])
+            den[int(g)] = den.get(int(g), 0.0) + np.array([a[sel].sum() for a, _ in terms])
     return {g: np.clip(num[g] / np.where(den[g] > 0, den[g], 1.0), rho_min, 1.0) for g in num}

@@ -20,7 +20,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from objcam.solvers.joint.boxqp import solve_box_qp
@@ -82,7 +81,7 @@ def _group_step(J, rho: list[np.ndarray], chans, systems: dict) -> None:
             for g in parts:
                 sel = J.groups[k] == g
                 if sel.any():
-                    parts[g].append(group_terms(sp.csr_matrix(H), bt, rho[k][:, c], sel))
+                    parts[g].append(group_terms(H, bt, rho[k][:, c], sel))
                     current.setdefault(g, float(rho[k][sel, c][0]))
         vals = group_values({g: t for g, t in parts.items() if t}, current, J.rho_min)
         for k in range(J.P):
