@@ -56,10 +56,14 @@ def group_values(parts: dict[int, list[tuple[float, float]]], current: dict[int,
     1^T b_g - 1^T H_gf r_f); a group no camera's data sees (curvature 0) keeps ``current[g]``."""
     out = {}
     for g, terms in parts.items():
-        h = float(sum(t[0] for t in terms))
-        b = float(sum(t[1] for t in terms))
+        h, b = _summed(terms)
         out[g] = float(np.clip(b / h, rho_min, 1.0)) if h > 0 else current[g]
     return out
+
+
+def _summed(terms: list[tuple[float, float]]) -> tuple[float, float]:
+    """A group's 1-D quadratic over every camera: its cameras' (curvature, linear term) summed."""
+    return float(sum(t[0] for t in terms)), float(sum(t[1] for t in terms))
 
 
 def group_terms(H: sp.csr_matrix, b: np.ndarray, r: np.ndarray, sel: np.ndarray) -> tuple[float, float]:
@@ -76,11 +80,11 @@ def group_kkt(parts: dict[int, list[tuple[float, float]]], values: dict[int, flo
     .box_kkt_residual: the natural residual in units of ``scale``, the largest |b| of the cameras' systems)."""
     worst = 0.0
     for g, terms in parts.items():
-        h = float(sum(t[0] for t in terms))
+        h, b = _summed(terms)
         if h <= 0:
             continue
         a = values[g]
-        grad = h * a - float(sum(t[1] for t in terms))
+        grad = h * a - b
         worst = max(worst, h * abs(a - float(np.clip(a - grad / h, rho_min, 1.0))))
     return worst / scale if scale > 0 else worst
 

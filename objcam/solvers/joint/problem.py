@@ -58,7 +58,7 @@ from objcam.solvers.joint.blocks import (
     photos_mlc,
 )
 from objcam.solvers.joint.boxqp import box_kkt_residual
-from objcam.solvers.joint.groups import check_groups, group_kkt, group_terms, unify
+from objcam.solvers.joint.groups import check_groups, group_kkt, group_terms, unify, values_of
 from objcam.solvers.joint.kernels import col_sq_norms, matmul, tmatmul, weighted_gram
 from objcam.solvers.regularization import difference_operator
 from objcam.threads import blas_threads
@@ -387,6 +387,7 @@ class JointProblem:
         """(P, C) relative KKT residual of the albedo subproblem at rho: per camera its pixels' box QP (a group's
         pixels held at their value), and each group's 1-D problem, charged to every camera holding it."""
         out = np.zeros((self.P, self.C))
+        now = values_of(rho, self.groups)  # each group's albedo (C,)
         for c in range(self.C):
             parts: dict[int, list] = {int(g): [] for g in self.group_ids}
             scale = 0.0
@@ -405,9 +406,7 @@ class JointProblem:
                 out[k, c] = box_kkt_residual(H, beta, r[:, c], lo, hi)
                 scale = max(scale, float(np.max(np.abs(beta))))
             if parts:
-                vals = {g: float(next(r[self.groups[k] == g, c][0] for k, r in enumerate(rho)
-                                      if (self.groups[k] == g).any())) for g in parts}
-                gk = group_kkt(parts, vals, self.rho_min, scale)
+                gk = group_kkt(parts, {g: float(now[g][c]) for g in parts}, self.rho_min, scale)
                 for k in range(self.P):
                     if (self.groups[k] > 0).any():
                         out[k, c] = max(out[k, c], gk)

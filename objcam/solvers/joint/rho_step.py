@@ -24,7 +24,7 @@ from scipy.sparse.linalg import splu
 
 from objcam.solvers.joint.boxqp import solve_box_qp
 from objcam.solvers.joint.context import StepContext
-from objcam.solvers.joint.groups import group_terms, group_values
+from objcam.solvers.joint.groups import group_terms, group_values, values_of
 
 
 def rho_step(ctx: StepContext, rho: list[np.ndarray], S: list[np.ndarray], chans) -> list[np.ndarray]:
@@ -71,9 +71,9 @@ def rho_step(ctx: StepContext, rho: list[np.ndarray], S: list[np.ndarray], chans
 def _group_step(J, rho: list[np.ndarray], chans, systems: dict) -> None:
     """Each group's albedo in each channel of ``chans`` by its 1-D quadratic over every camera at the other pixels'
     new albedo (``systems``: (camera, channel) -> that camera's albedo system (H, b)); in place."""
+    now = values_of(rho, J.groups)  # each group's albedo (C,), kept where no camera's data sees it
     for c in chans:
         parts: dict[int, list] = {int(g): [] for g in J.group_ids}
-        current: dict[int, float] = {}
         for (k, cc), sysk in systems.items():
             if cc != c:
                 continue
@@ -82,8 +82,8 @@ def _group_step(J, rho: list[np.ndarray], chans, systems: dict) -> None:
                 sel = J.groups[k] == g
                 if sel.any():
                     parts[g].append(group_terms(H, bt, rho[k][:, c], sel))
-                    current.setdefault(g, float(rho[k][sel, c][0]))
-        vals = group_values({g: t for g, t in parts.items() if t}, current, J.rho_min)
+        vals = group_values({g: t for g, t in parts.items() if t}, {g: float(v[c]) for g, v in now.items()},
+                            J.rho_min)
         for k in range(J.P):
             for g, v in vals.items():
                 rho[k][J.groups[k] == g, c] = v
