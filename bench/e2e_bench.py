@@ -186,22 +186,27 @@ def derived_capture(full: Path, dest: Path, albedo_known: bool, probe: bool) -> 
         truth["probes"] = {}
     made["truth/truth.json"] = json.dumps(truth, indent=2).encode()
     dest.mkdir(parents=True, exist_ok=True)
-    for src in sorted(full.rglob("*")):
-        rel = src.relative_to(full)
-        if not src.is_file() or rel.parts[0] == "objcam" or rel.as_posix() in made or (not params.probe and (
-                rel.parts[0] == "probes" or rel.parts[:2] == ("truth", "probes")
-                or rel.parts[:3] == ("truth", "cameras", "probes"))):
-            continue
-        dst = dest / rel
-        if not dst.exists():
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.link(src, dst)
+    link_inputs(full, dest, lambda rel: rel.as_posix() not in made and (params.probe or not (
+        rel.parts[0] == "probes" or rel.parts[:2] == ("truth", "probes")
+        or rel.parts[:3] == ("truth", "cameras", "probes"))))
     for rel, data in made.items():  # rewritten only when changed (keeps objcam's cache keys and memo valid)
         path = dest / rel
         if not path.is_file() or (path.read_bytes() != data and not _same_exr(path, data)):
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(data)
     return dest
+
+
+def link_inputs(full: Path, dest: Path, keep) -> None:
+    """Hard-link the files of the capture ``full`` into ``dest`` (those not there yet), except objcam's work
+    folder and the relative paths ``keep(rel)`` turns down: a derived capture shares the rendered photos."""
+    for src in sorted(full.rglob("*")):
+        rel = src.relative_to(full)
+        if src.is_file() and rel.parts[0] != "objcam" and keep(rel):
+            dst = dest / rel
+            if not dst.exists():
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.link(src, dst)
 
 
 def _same_exr(path: Path, data: bytes) -> bool:

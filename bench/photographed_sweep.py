@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench.e2e_bench import _last_error, objcam_run
+from bench.e2e_bench import _last_error, link_inputs, objcam_run
 from bench.sections import invocation, write_section
 
 TITLE = "Photographed captures outside the bench: a sweep from raw photos (session 48)"
@@ -103,20 +103,12 @@ def capture(out: Path, overrides: dict) -> Path:
 def one_colour_capture(full: Path, dest: Path) -> Path:
     """The capture ``full`` (its photos hard-linked) with capture.toml declaring the object one colour of unknown
     value (``[albedo] object = "uniform"``); rewritten only when it changed (objcam's cache keys on it)."""
-    import os
-
     toml = (full / "capture.toml").read_text()
     if "[albedo]" in toml:
         raise ValueError(f"{full}: the one-colour copy is for captures whose albedo is unknown")
     head, tail = toml.split("\n[camera]", 1)
     text = head + '\n[albedo]\nobject = "uniform"\n\n[camera]' + tail
-    for src in sorted(full.rglob("*")):
-        rel = src.relative_to(full)
-        if src.is_file() and rel.parts[0] != "objcam" and rel.as_posix() != "capture.toml":
-            dst = dest / rel
-            if not dst.exists():
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                os.link(src, dst)
+    link_inputs(full, dest, lambda rel: rel.as_posix() != "capture.toml")
     if not (dest / "capture.toml").is_file() or (dest / "capture.toml").read_text() != text:
         (dest / "capture.toml").write_text(text)
     return dest
