@@ -91,7 +91,7 @@ JOINT_TOL = 1e-3
 #: ... and when the final step (final_envmap=known) follows: the joint solve provides the albedo that the TV step
 #: starts from, and it must be converged. 1e-2 (the dots bench scene: SSIM 0.6669 at 1e-2 against 0.6666 at 1e-3)
 #: stopped the photographed sweep's known-geometry twins after 1-6 sweeps in a flat valley where the support's
-#: per-pixel albedo and the envmap still moved: per pixel, SSIM median 0.408 -> 0.459 at 1e-4 (15 of 21 targets
+#: per-pixel albedo and the envmap still moved: per pixel, SSIM median 0.408 -> 0.459 at 1e-4 (15 of 20 targets
 #: better, 3 worse by <= 0.01), and 1e-5 changed it by a further 0.009 (median |change|): 1e-4 is where the answer
 #: has converged to within what the tolerance still moves, for ~1.5x the solve time (bench/results.md, session 51).
 JOINT_TOL_FINAL = 1e-4
