@@ -23,6 +23,7 @@ from objcam.solvers.plan.defaults import (
     FINAL_ROUNDS,
     JOINT_TOL,
     JOINT_TOL_FINAL,
+    JOINT_TOL_FINAL_ONE_ILLUMINATION,
     LP_ONE_ILLUMINATION,
     LR_SIGMA_REF,
     LS_NOISE_FACTOR,
@@ -161,7 +162,8 @@ class SolveParams(BaseModel):
         "(bench/results.md: on path-traced targets every rule picked far too little smoothing)")
     tol: float | None = Field(None, gt=0, description="joint solve: stop when the relative objective decrease per "
                               f"sweep is below tol; None: {JOINT_TOL:g}, or {JOINT_TOL_FINAL:g} when the final step "
-                              "(final_envmap=known) follows")
+                              f"(final_envmap=known) follows ({JOINT_TOL_FINAL_ONE_ILLUMINATION:g} with lp > 0, "
+                              "i.e. one illumination)")
     max_iter: int = Field(100, ge=1, description="joint solve: most sweeps (paper: most damped steps)")
     alpha: float = Field(0.5, gt=0, description="joint method=paper: damping of the envmap step (Eq. 7)")
     mixed_pixels: Literal["exclude", "fit"] = Field(

@@ -41,6 +41,7 @@ from objcam.solvers.plan.defaults import (
     JOINT_LS0_REL,
     JOINT_TOL,
     JOINT_TOL_FINAL,
+    JOINT_TOL_FINAL_ONE_ILLUMINATION,
     LP_ONE_ILLUMINATION,
     SCALE_NOTE,
     SCALE_PINNED_NOTE,
@@ -172,7 +173,9 @@ def joint_setup(scene, data: dict[str, TargetData], params: SolveParams, cams: l
                 with_final: bool):
     """The joint solve's settings for this problem. Returns (JointSetup, conv: the factor from weights relative
     to A = diag(rho0) A' to weights relative to A', ls_source, sigma: the discrepancy rule's noises or None)."""
-    tol = params.tol if params.tol is not None else (JOINT_TOL_FINAL if with_final else JOINT_TOL)
+    lp = (0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp
+    final_tol = JOINT_TOL_FINAL if lp == 0 else JOINT_TOL_FINAL_ONE_ILLUMINATION
+    tol = params.tol if params.tol is not None else (final_tol if with_final else JOINT_TOL)
     # the joint solve's weights are relative to A' (albedo 1); ls and lr are relative to A = diag(rho0) A', as for
     # a known albedo, so one number means one prior strength in both cases
     num = sum(float(np.sum((c["rho0"] ** 2).mean(axis=1) @ (c["A"].astype(np.float64) ** 2))) for c in cams)
@@ -192,7 +195,7 @@ def joint_setup(scene, data: dict[str, TargetData], params: SolveParams, cams: l
         edge_eps=params.edge_eps if params.edge_eps is not None else EDGE_EPS_JOINT,
         edge_steps=min(params.edge_steps, JOINT_EDGE_STEPS),
         ls=None if params.auto_reg != "off" else ls_fixed * conv, lr=params.ridge * conv,
-        lp=(0.0 if L >= 2 else LP_ONE_ILLUMINATION) if params.lp is None else params.lp,
+        lp=lp,
         rule=params.auto_reg, ls0=JOINT_LS0_REL, tol=tol, max_iter=params.max_iter,
         alpha=params.alpha, texel_group=texel_group(params, known=False), pinned_scale=params.pinned_scale)
     if with_final:  # its envmaps replace the joint solve's: no final exact x-step there
