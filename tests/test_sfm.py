@@ -422,3 +422,62 @@ def test_corners_seen_only_from_one_tripod_position_are_not_triangulated():
     assert np.linalg.norm(tri[with_view][0] - pts[with_view]) < 1e-6
     # the test's test: without the angle rule the pair's corner is "triangulated"
     assert only_pair in triangulate_corners(rec, BoardObservations(det, sorted(det)), min_angle_deg=0.0)
+    # every camera at one centre (what a collapsed model leaves): no corner, and no LinAlgError from the SVD
+    for i in images:
+        wfc = look_at(np.array([0.0, -0.45, 0.4]), np.array([0.02 * i, 0.0, 0.0]))
+        images[i] = SimpleNamespace(name=images[i].name, camera_id=0, cam_from_world=_Pose(np.linalg.inv(wfc)))
+    assert triangulate_corners(rec, BoardObservations(det, sorted(det)), min_angle_deg=0.0) == {}
+
+
+def test_a_seeded_model_the_mapper_collapses_is_mapped_again_with_the_board_poses_held(small_capture, tmp_path,
+                                                                                     monkeypatch):
+    """pycolmap 4.2's mapper, started from the board's PnP poses, can collapse the model in its global bundle
+    adjustment ("Failed to fix Gauge", final cost 0, every point filtered: a photographed capture's 14 images and
+    its 569-point seed came back with 0 points and its cameras moved, and the stage stopped at "only 0 board
+    corners could be triangulated"). The collapse is simulated here (the seeded run's models emptied of points,
+    every camera moved to one place); the front end maps again with the seeds' poses held (seeded "held") and the
+    views land where the unbroken run puts them. Without the fallback it raises that InputError."""
+    import pycolmap
+
+    from objcam.sfm.colmap import collapsed
+    from objcam.sfm.frontend import FrontendOptions, estimate_cameras
+
+    views, truth, params = small_capture
+    pngs = sorted(views.glob("*.png"))[:-1]
+    real = pycolmap.incremental_mapping
+    calls = []
+
+    def mapping(*args, options=None, input_path=None, **kw):
+        models = real(*args, options=options, input_path=input_path, **kw)
+        calls.append((input_path is not None, bool(options.fix_existing_frames)))
+        if input_path is not None and not options.fix_existing_frames:
+            for m in models.values():  # what the collapse leaves: the images at one place, no point
+                for pid in list(m.points3D):
+                    m.delete_point3D(pid)
+                for f in m.frames.values():
+                    f.rig_from_world = pycolmap.Rigid3d(f.rig_from_world.rotation, np.zeros(3))
+        return models
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapping)
+    result = estimate_cameras(tmp_path / "work", pngs, options=FrontendOptions(board=params.board))
+    assert calls == [(True, False), (True, True)]
+    assert result.sfm.seeded == "held" and result.sfm.num_points3D > 100
+    assert len(result.views) == len(pngs)
+    centre_mm, rot_deg = _pose_errors(result.views, {k: truth[k] for k in result.views})
+    assert _poses_ok(centre_mm, rot_deg), (centre_mm, rot_deg)
+    # the test of the rule: a model kept whole is not collapsed, one with a twentieth of its seed's points is
+    assert not collapsed({0: _Model(14, 560)}, 569)
+    assert collapsed({0: _Model(14, 28)}, 569) and collapsed({0: _Model(14, 0)}, 569)
+
+
+class _Model:
+    """A stand-in for a pycolmap Reconstruction: its registered images and points."""
+
+    def __init__(self, images: int, points: int):
+        self.images, self.points = images, points
+
+    def num_reg_images(self) -> int:
+        return self.images
+
+    def num_points3D(self) -> int:
+        return self.points

@@ -245,13 +245,21 @@ def _normalised(cam, uv_opencv: np.ndarray) -> np.ndarray:
 
 def _triangulate_point(Ps: np.ndarray, xs: np.ndarray, w: np.ndarray, iters: int = 10) -> np.ndarray:
     """One point from (K, 3, 4) normalised projections and (K, 2) normalised observations, weights w (K,)
-    (focal lengths, so residuals are ~pixels): DLT then Gauss-Newton."""
+    (focal lengths, so residuals are ~pixels): DLT then Gauss-Newton. NaNs where the rays fix no point (they
+    meet at infinity or pass through the point from one centre: a degenerate or collapsed model)."""
+    nan = np.full(3, np.nan)
     A = np.concatenate([xs[:, :1] * Ps[:, 2] - Ps[:, 0], xs[:, 1:2] * Ps[:, 2] - Ps[:, 1]], axis=0)
     A *= np.concatenate([w, w])[:, None]
+    if not np.all(np.isfinite(A)):
+        return nan
     _, _, vt = np.linalg.svd(A)
+    if abs(vt[-1, 3]) < 1e-12 * np.linalg.norm(vt[-1, :3]):
+        return nan
     X = vt[-1, :3] / vt[-1, 3]
     for _ in range(iters):
         p = np.einsum("kij,j->ki", Ps[:, :, :3], X) + Ps[:, :, 3]
+        if not np.all(np.abs(p[:, 2]) > 0):
+            return nan
         r = (p[:, :2] / p[:, 2:3] - xs) * w[:, None]
         J = np.zeros((len(Ps), 2, 3))
         inv = 1.0 / p[:, 2]
@@ -259,6 +267,8 @@ def _triangulate_point(Ps: np.ndarray, xs: np.ndarray, w: np.ndarray, iters: int
         J[:, 1] = (Ps[:, 1, :3] - (p[:, 1] * inv)[:, None] * Ps[:, 2, :3]) * inv[:, None]
         J *= w[:, None, None]
         Jf, rf = J.reshape(-1, 3), r.reshape(-1)
+        if not np.all(np.isfinite(rf)):
+            return nan
         step = np.linalg.lstsq(Jf, -rf, rcond=None)[0]
         X = X + step
         if np.linalg.norm(step) < 1e-12 * (1 + np.linalg.norm(X)):
@@ -304,6 +314,8 @@ def triangulate_corners(rec, obs: BoardObservations, max_error_px: float = 2.0, 
         xs = np.stack([b for _, b, _ in lst])
         w = np.array([c for _, _, c in lst])
         X = _triangulate_point(Ps, xs, w)
+        if not np.all(np.isfinite(X)):
+            continue
         for _ in range(2):
             e = _reproj_px(Ps, xs, w, X)
             keep = e <= max(min(max_error_px, 4 * np.median(e)), 0.25)
@@ -313,7 +325,8 @@ def triangulate_corners(rec, obs: BoardObservations, max_error_px: float = 2.0, 
             X = _triangulate_point(Ps, xs, w)
         e = _reproj_px(Ps, xs, w, X)
         depth = np.einsum("kj,j->k", Ps[:, 2, :3], X) + Ps[:, 2, 3]
-        if len(Ps) < min_views or np.any(depth <= 0) or np.sqrt(np.mean(e**2)) > max_error_px:
+        if len(Ps) < min_views or not np.all(np.isfinite(e)) or np.any(depth <= 0) or \
+                np.sqrt(np.mean(e**2)) > max_error_px:
             continue
         if _widest_ray_angle_deg(Ps, X) < min_angle_deg:
             continue

@@ -63,7 +63,8 @@ class SfmResult(BaseModel):
     images: list[str]  # every image given, relative to image_dir
     registered: list[str]
     unregistered: list[str]
-    seeded: bool  # started from given poses (seed_poses)
+    seeded: bool | Literal["held"]  # started from given poses (seed_poses); "held": those poses held fixed, after
+    # the mapper's adjustment of them collapsed the model (:func:`collapsed`)
     num_points3D: int
     mean_reprojection_error_px: float
     mean_track_length: float
@@ -265,8 +266,17 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
             tri = pycolmap.triangulate_points(seed, db, image_dir, _mk(seed_dir), options=mo)
             tri.write(str(seed_dir))
             models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo, input_path=seed_dir)
-            shutil.rmtree(seed_dir, ignore_errors=True)
             seeded = True
+            if collapsed(models, tri.num_points3D()):
+                # the mapper's global bundle adjustment can collapse a seeded model (pycolmap 4.2: "Failed to fix
+                # Gauge", final cost 0, every point filtered; seen on a capture whose 14 images were all seeded
+                # and a 569-point seed at 0.39 px): map again with the seeds' board poses held
+                seeded = "held"
+                shutil.rmtree(sparse)
+                sparse.mkdir(parents=True)
+                mo.fix_existing_frames = True
+                models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo, input_path=seed_dir)
+            shutil.rmtree(seed_dir, ignore_errors=True)
         else:
             models = pycolmap.incremental_mapping(db, image_dir, sparse, options=mo)
         seconds["map"] = time.perf_counter() - t
@@ -309,6 +319,16 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
                          "and the object in every view, avoid blur")
     echo_log()
     return result
+
+
+def collapsed(models: Mapping, seed_points: int) -> bool:
+    """Whether the mapper's models, started from a seed model of ``seed_points`` triangulated points, kept fewer
+    than a tenth of them in the model with the most registered images (a bundle adjustment that collapsed the
+    model drops every observation; a healthy seeded run keeps about as many as it started with, and more)."""
+    if not models or seed_points <= 0:
+        return False
+    best = max(models.values(), key=lambda m: m.num_reg_images())
+    return best.num_points3D() < 0.1 * seed_points
 
 
 def camera_groups(groups: Mapping[str, Sequence[str]], camera_of: Mapping[str, str] | None) -> dict[str, list[str]]:

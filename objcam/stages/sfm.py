@@ -225,6 +225,7 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         "board_corner_rms_mm": al.get("corner_rms_mm"), "board_plane_rms_mm": al.get("plane_rms_mm"),
         "board_reprojection_px": (result.bundle or {}).get("board_rms_px_after", al.get("reprojection_rms_px")),
         "n_points": n_points, "shared_camera": bool(camera_of), "seconds": result.seconds,
+        "seeded": result.sfm.seeded,
         "target_positions": len(target_cams) - sum(len(p["targets"]) - 1 for p in positions),
     }
     summary = (f"{n_reg}/{n_img} images registered ({len(result.views)}/{len(views)} views, "
@@ -236,6 +237,8 @@ def run(inputs: StageInputs, params: Params) -> StageOutputs:
         # near misses: meant as one tripod position? they are solved apart (one A each)
         summary += (f", {' / '.join(apart['targets'])} {apart['displacement_px']:.2f} px apart: separate cameras "
                     f"(sfm.same_position_px={params.same_position_px:g})")
+    if result.sfm.seeded == "held":
+        summary += ", mapped with the board's poses held (the mapper's adjustment collapsed the seeded model)"
     if al.get("corner_rms_mm") is not None:
         summary += f", board {al['corner_rms_mm']:.2f} mm RMS"
     summary += f"; grade {grade}"
