@@ -48,11 +48,12 @@ No ground truth is used: every measure comes from the photo, the model and the s
   the low sky near the level a given albedo gives, session 50). Where it is most of them, the low sky comes out
   too bright: measured on photographed captures with every albedo unknown, the 0-10 deg band at 4-10x the
   truth's energy (4.6-6x on three of the sweep's nine twins once the joint solve converged, session 51), 2-4x
-  with the object's albedo given, and the object's albedo estimated low (bench/results.md, session 49). Light a few degrees up reaches the object's
-  sides and barely the plane, so that band's level follows the object's albedo against the support's (given 25%
-  low or 33% high it moved 2-3x -> 3-4.5x and 0.04-0.09x). Not a spread this posterior misses by holding the
-  albedo fixed: eliminating each pixel's albedo exactly widens the low sky's spread by ~10% only; but the spread
-  is compared with the estimate, and an estimate several times too bright looks determined. Yellow, with the fix.
+  with the object's albedo given, and the object's albedo estimated low (bench/results.md, session 49). Light a
+  few degrees up reaches the object's sides and barely the plane, so that band's level follows the object's albedo
+  against the support's (given 25% low or 33% high it moved 2-3x -> 3-4.5x and 0.04-0.09x). Not a spread this
+  posterior misses by holding the albedo fixed: eliminating each pixel's albedo exactly widens the low sky's
+  spread by ~10% only; but the spread is compared with the estimate, and an estimate several times too bright
+  looks determined. Yellow, with the fix.
 * ``sky_profile_area``: the share of the sky the map gives as one value per elevation row
   (objcam.solvers.skyprofile): its azimuthal detail is the prior's, not the photo's (yellow). Those texels'
   uncertainty is that of their row's value in the map's own model (:func:`row_mean_spread`).
