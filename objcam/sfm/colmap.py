@@ -206,9 +206,16 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
         ext.max_image_size = options.max_image_size
         ext.sift.max_num_features = options.max_num_features
         pycolmap.Database.open(db).close()  # an empty database (import_images wants one)
-        for group, names in camera_groups(groups, camera_of).items():
+        # one group at a time, in ``groups``' order (the ring of views first): COLMAP numbers the images in the
+        # order they are imported (by name within one import), and its mapper fixes the bundle adjustment's gauge
+        # on the first two. Imported as one camera group, "probes/" and "targets/" sort before "views/": two
+        # chrome-ball shots from one tripod, 2 mm apart, were images 1 and 2 and collapsed a seeded model
+        # (bench/results.md, sessions 52-53). Groups of one camera group share its COLMAP camera.
+        camera_ids: dict[str, int] = {}
+        for source, names in groups.items():
             if not names:
                 continue
+            group = (camera_of or {}).get(source, source)
             known = intrinsics.get(group)
             guess = (initial_intrinsics or {}).get(group)
             reader = pycolmap.ImageReaderOptions()
@@ -223,10 +230,15 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
                 reader.camera_params = ",".join(repr(float(x)) for x in params)
             else:
                 reader.camera_model = options.camera_model
+            if group in camera_ids:
+                reader.existing_camera_id = camera_ids[group]
             # the images first, one by one: the extractor's threads would add them in the order they finish, and
             # COLMAP's image ids (which order the mapper's choices) would differ from run to run
             pycolmap.import_images(db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=list(names),
                                    options=reader)
+            if group not in camera_ids:
+                with pycolmap.Database.open(db) as opened:
+                    camera_ids[group] = opened.read_image_with_name(names[0]).camera_id
             pycolmap.extract_features(db, image_dir, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
                                       reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
         seconds["extract"] = time.perf_counter() - t
