@@ -348,7 +348,6 @@ def test_sfm_registers_too_few(tmp_path):
     assert "\n" not in msg and str(tmp_path / "photos") in msg and "registered" in msg and "fix:" in msg
 
 
-
 def test_the_ring_of_views_is_numbered_first_where_other_photos_share_its_camera(small_capture, tmp_path):
     """COLMAP numbers the images in import order, by name within one import, and its mapper fixes the bundle
     adjustment's gauge on the first two. One camera body for every photo (``camera_of``) once made one import of
