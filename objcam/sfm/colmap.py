@@ -281,8 +281,9 @@ def run_sfm(work_dir: str | Path, image_dir: str | Path, groups: Mapping[str, Se
             seeded = True
             if collapsed(models, tri.num_points3D()):
                 # the mapper's global bundle adjustment can collapse a seeded model (pycolmap 4.2: "Failed to fix
-                # Gauge", final cost 0, every point filtered; seen where COLMAP's first two images, by name, were
-                # two chrome-ball shots from one tripod, 2 mm apart): map again with the seeds' board poses held
+                # Gauge", final cost 0, every point filtered; seen where COLMAP's first two images were two
+                # chrome-ball shots from one tripod, 2 mm apart, which the import order above now prevents; kept
+                # as a guard): map again with the seeds' board poses held
                 seeded = "held"
                 shutil.rmtree(sparse)
                 sparse.mkdir(parents=True)
