@@ -357,28 +357,22 @@ def test_the_ring_of_views_is_numbered_first_where_other_photos_share_its_camera
     targets first, which the first assertion names."""
     import pycolmap
 
-    from objcam.sfm.colmap import prepare_images, run_sfm
+    from objcam.sfm.colmap import SfmOptions, prepare_images, run_sfm
 
     views, _truth, _params = small_capture
     pngs = sorted(views.glob("*.png"))
     groups = prepare_images(tmp_path / "images", {"views": pngs[:-2], "targets": pngs[-2:]})
-    with pytest.raises(InputError):  # too few matches to map; the database is written before the mapper runs
-        run_sfm(tmp_path / "w", tmp_path / "images", groups, camera_of={"targets": "views"},
-                options=_unmappable_options())
+    # no initial pair has that many inliers, so the mapper cannot start: the database the import wrote is read
+    # without paying for a model
+    unmappable = SfmOptions(max_num_features=256, init_min_num_inliers=100000)
+    with pytest.raises(InputError):
+        run_sfm(tmp_path / "w", tmp_path / "images", groups, camera_of={"targets": "views"}, options=unmappable)
     with pycolmap.Database.open(tmp_path / "w" / "database.db") as db:
         images = sorted(db.read_all_images(), key=lambda im: im.image_id)
     assert [im.name for im in images] == groups["views"] + groups["targets"]
     assert {im.camera_id for im in images} == {images[0].camera_id}
     # a test of the test: by name alone, as one import orders them, the targets would come first
     assert sorted(groups["views"] + groups["targets"])[0].startswith("targets/")
-
-
-def _unmappable_options():
-    """SfM options under which the mapper cannot start (no initial pair has that many inliers): the test above
-    reads the database the import wrote without paying for a model."""
-    from objcam.sfm.colmap import SfmOptions
-
-    return SfmOptions(max_num_features=256, init_min_num_inliers=100000)
 
 
 def _board_figures_ok(corner_rms_mm: float, plane_rms_mm: float) -> bool:
