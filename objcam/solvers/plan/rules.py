@@ -123,6 +123,19 @@ def fitted_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int) -> t
     return (float(est), "estimated") if est else (None, "unknown")
 
 
+def photo_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int) -> tuple[float | None, str]:
+    """(relative noise per fitted pixel, its source) against which the verdict judges the residual: as
+    :func:`fitted_noise` where the target states noise_sigma, else the photo's own noise
+    (objcam.transport.auto.estimate_pixel_noise: edges and texture are not noise), not the mean-|Laplacian| reading
+    that weights the prior."""
+    from objcam.transport.auto import estimate_pixel_noise
+
+    if target.noise_sigma:
+        return fitted_noise(target, pooled, pooled_ok, f)
+    est = estimate_pixel_noise(pooled, pooled_ok)
+    return (float(est), "estimated") if est else (None, "unknown")
+
+
 def discrepancy_sigma(target, y: np.ndarray, rule: str) -> float | None:
     """Absolute noise standard deviation of one pixel value for the discrepancy rule: the target's relative
     ``noise_sigma`` (capture.toml) times its median positive pixel value."""

@@ -2,8 +2,10 @@
 
 No ground truth is used: every measure comes from the photo, the model and the solve.
 
-* ``chi2``: the residual per fitted pixel value over the stated noise (``noise_sigma`` per photo pixel over the
-  pooling, else estimated from the image), squared and averaged. ~1 when the model explains the photo to its
+* ``chi2``: the residual per fitted pixel value over the photo's noise (``noise_sigma`` per photo pixel over the
+  pooling, else the photo's own, rules.photo_noise: the median |Laplacian|, which edges and texture do not
+  inflate; the prior's mean-|Laplacian| reading, rules.fitted_noise, counts them and on photographed captures
+  reads 1.6-3x more: bench/results.md, session 54), squared and averaged. ~1 when the model explains the photo to its
   noise; far above it, the photo holds light or geometry the model lacks (interreflections, a wrong mesh, a
   saturated area, a hot pixel). ``residual_fraction``: the same residual over the photo (root sums of squares):
   how much of the light the model leaves unexplained. chi2 says whether a misfit is real, the fraction whether it
@@ -97,7 +99,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
     VERDICT_UNCERTAIN_YELLOW,
 )
-from objcam.solvers.plan.rules import fitted_noise, relative_column_norms
+from objcam.solvers.plan.rules import fitted_noise, photo_noise, relative_column_norms
 from objcam.solvers.plan.targets import TargetData, TargetSolution
 
 GRADES = ("green", "yellow", "red")
@@ -352,7 +354,12 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float, full: bool
     up_b, rec["brightest_seen"] = brightest_source(env, mask, tr, relative_column_norms(diag, tr.directions))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(up_b, -1, 1))))
     if sigma_rel:
-        rec["chi2"], sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
+        # the residual against the photo's noise; the posterior's measures below at the prior's (fitted_noise)
+        chi_rel, _ = photo_noise(target, d.pooled, d.pooled_ok, tr.downsample)
+        rec["chi2"], _ = chi2_per_value(y[use], fit, chi_rel or sigma_rel)
+        _, sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
+        if chi_rel and chi_rel != sigma_rel:
+            rec["photo_noise_per_fitted_pixel"] = chi_rel
     if sigma_rel and full:
         D = solvers.difference_operator(tr.grid, tr.texel_index)
         # what a viewer sees: texels whose spread exceeds both their value and a fiftieth of the map's
