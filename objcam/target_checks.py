@@ -53,18 +53,15 @@ def read_target(path: Path, encoding: str | None) -> np.ndarray:
 def noise_level(rgb: np.ndarray, valid: np.ndarray, noise_sigma: float | None) -> tuple[np.ndarray | None, str]:
     """Absolute noise sigma per channel (3,): ``noise_sigma`` x the median positive value when the capture gives
     it, else Immerkaer's Laplacian estimate over the valid pixels; None when neither is possible."""
-    from scipy.ndimage import binary_erosion, convolve
+    from objcam.transport.auto import MEAN_LAPLACIAN_TO_SIGMA, laplacian_channels
 
     if noise_sigma:
         pos = rgb[valid][rgb[valid] > 0]
         return np.full(3, noise_sigma * (float(np.median(pos)) if pos.size else 1.0)), "noise_sigma"
-    ok = binary_erosion(valid, structure=np.ones((3, 3), bool), border_value=False)
-    if ok.sum() < 64:
+    parts = laplacian_channels(rgb[..., :3], valid)
+    if parts is None:
         return None, "unknown"
-    kern = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
-    sig = [np.sqrt(np.pi / 2) / 6.0 * np.mean(np.abs(convolve(rgb[..., c].astype(np.float64), kern,
-                                                                  mode="nearest")[ok])) for c in range(3)]
-    return np.asarray(sig), "estimated"
+    return np.array([MEAN_LAPLACIAN_TO_SIGMA * float(np.mean(lap)) for _, lap in parts]), "estimated"
 
 
 def check_negatives(rgb: np.ndarray, valid: np.ndarray, noise_sigma: float | None, path: Path) -> dict:

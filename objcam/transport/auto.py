@@ -28,9 +28,10 @@ from objcam.progress import bar
 from objcam.transport.path import PathRenderer
 
 
-def estimate_relative_noise(image: np.ndarray, valid: np.ndarray) -> float | None:
-    """Relative noise sigma / mean of a linear image over its valid pixels (Immerkaer's Laplacian-difference
-    estimator, per channel, averaged); None when too few pixels."""
+def laplacian_channels(image: np.ndarray, valid: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """Per channel of a linear image (H, W, C), over its valid pixels (H, W) bool whose whole 3 x 3 neighbourhood
+    is valid: (the values (K,), |Laplacian| (K,) with Immerkaer's kernel, whose response to Gaussian noise of sigma
+    has sigma 6 sigma and to smooth light none); None when fewer than 64 such pixels."""
     from scipy.ndimage import binary_erosion, convolve
 
     img = np.nan_to_num(np.asarray(image, dtype=np.float64))
@@ -38,45 +39,40 @@ def estimate_relative_noise(image: np.ndarray, valid: np.ndarray) -> float | Non
     if ok.sum() < 64:
         return None
     kern = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
-    rel = []
-    for c in range(img.shape[2]):
-        lap = convolve(img[..., c], kern, mode="nearest")
-        sigma = np.sqrt(np.pi / 2) / 6.0 * np.mean(np.abs(lap[ok]))
-        mean = np.mean(img[..., c][ok])
-        if mean > 0:
-            rel.append(sigma / mean)
-    return float(np.mean(rel)) if rel else None
+    return [(img[..., c][ok], np.abs(convolve(img[..., c], kern, mode="nearest")[ok])) for c in range(img.shape[2])]
 
 
-#: sigma of Gaussian noise per unit of the median |Laplacian|: 1 / (the kernel's norm 6 x the median of |N(0, 1)|)
+#: Gaussian sigma per unit of the mean |Laplacian| (sqrt(pi / 2) / the kernel's norm 6) and of the median (1 / (6 x
+#: the median of |N(0, 1)|, 0.6745))
+MEAN_LAPLACIAN_TO_SIGMA = np.sqrt(np.pi / 2) / 6.0
 _MEDIAN_LAPLACIAN_TO_SIGMA = 1.0 / (6.0 * 0.6745)
+
+
+def estimate_relative_noise(image: np.ndarray, valid: np.ndarray) -> float | None:
+    """Relative noise sigma / mean of a linear image over its valid pixels (Immerkaer's Laplacian-difference
+    estimator, per channel, averaged); None when too few pixels."""
+    parts = laplacian_channels(image, valid)
+    if parts is None:
+        return None
+    rel = [MEAN_LAPLACIAN_TO_SIGMA * float(np.mean(lap)) / float(np.mean(v)) for v, lap in parts if np.mean(v) > 0]
+    return float(np.mean(rel)) if rel else None
 
 
 def estimate_pixel_noise(image: np.ndarray, valid: np.ndarray) -> float | None:
     """Relative noise of a linear image (H, W, C) over its valid pixels (H, W) bool, in ``noise_sigma``'s convention
-    (relative to the median positive value, :func:`absolute_noise`): per channel the median |Laplacian| (Immerkaer's
-    kernel) as a Gaussian sigma over the channel's median positive value, averaged; None when fewer than 64 pixels
-    have a valid 3 x 3 neighbourhood.
+    (relative to the median positive value, :func:`absolute_noise`): per channel the median |Laplacian| as a
+    Gaussian sigma over the channel's median positive value, averaged; None when too few pixels.
 
     :func:`estimate_relative_noise` takes the mean |Laplacian|, which counts every edge and texture as noise (a
     printed board's squares, shadow edges, an object's outline): on smooth light over an 8-pixel checkerboard it
     reads 9x the noise at 0.5% and 2.8x at 2%, where the median reads the noise (tests/test_noise_estimate.py).
     That inflated reading weights the prior (it stands in for the model error of photographed captures; measured,
     bench/results.md, session 54); this one is the photo's noise, against which the verdict judges the residual."""
-    from scipy.ndimage import binary_erosion, convolve
-
-    img = np.nan_to_num(np.asarray(image, dtype=np.float64))
-    ok = binary_erosion(np.asarray(valid, bool), structure=np.ones((3, 3), bool), border_value=False)
-    if ok.sum() < 64:
+    parts = laplacian_channels(image, valid)
+    if parts is None:
         return None
-    kern = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
-    rel = []
-    for c in range(img.shape[2]):
-        v = img[..., c][ok]
-        pos = v[v > 0]
-        if pos.size:
-            lap = convolve(img[..., c], kern, mode="nearest")[ok]
-            rel.append(_MEDIAN_LAPLACIAN_TO_SIGMA * float(np.median(np.abs(lap))) / float(np.median(pos)))
+    rel = [_MEDIAN_LAPLACIAN_TO_SIGMA * float(np.median(lap)) / float(np.median(v[v > 0]))
+           for v, lap in parts if (v > 0).any()]
     return float(np.mean(rel)) if rel else None
 
 

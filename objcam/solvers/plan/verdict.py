@@ -354,10 +354,12 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float, full: bool
     up_b, rec["brightest_seen"] = brightest_source(env, mask, tr, relative_column_norms(diag, tr.directions))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(up_b, -1, 1))))
     if sigma_rel:
+        from objcam.transport.auto import absolute_noise
+
         # the residual against the photo's noise; the posterior's measures below at the prior's (fitted_noise)
         chi_rel, _ = photo_noise(target, d.pooled, d.pooled_ok, tr.downsample)
         rec["chi2"], _ = chi2_per_value(y[use], fit, chi_rel or sigma_rel)
-        _, sigma_abs = chi2_per_value(y[use], fit, sigma_rel)
+        sigma_abs = absolute_noise(y[use], sigma_rel)
         if chi_rel and chi_rel != sigma_rel:
             rec["photo_noise_per_fitted_pixel"] = chi_rel
     if sigma_rel and full:
