@@ -111,28 +111,18 @@ def noise_scale(chi2: float, values: int, unknowns: int) -> tuple[float, float]:
     return float(np.sqrt(max(chi2, 1e-6) / expected)), expected
 
 
-def fitted_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int) -> tuple[float | None, str]:
+def fitted_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int,
+                 estimator=None) -> tuple[float | None, str]:
     """(relative noise per fitted pixel, its source): the target's noise_sigma (per photo pixel) over the f x f
-    pooling (the mean of f^2 independent pixels), else estimated from the pooled photo
-    (objcam.transport.auto.estimate_relative_noise); (None, "unknown") when neither is possible."""
+    pooling (the mean of f^2 independent pixels), else estimated from the pooled photo by ``estimator`` (image,
+    valid) -> relative noise or None (default objcam.transport.auto.estimate_relative_noise, the mean-|Laplacian|
+    reading that weights the prior; the verdict's chi2 takes estimate_pixel_noise, the photo's own noise);
+    (None, "unknown") when neither is possible."""
     from objcam.transport.auto import estimate_relative_noise
 
     if target.noise_sigma:
         return float(target.noise_sigma) / max(int(f), 1), "noise_sigma"
-    est = estimate_relative_noise(pooled, pooled_ok)
-    return (float(est), "estimated") if est else (None, "unknown")
-
-
-def photo_noise(target, pooled: np.ndarray, pooled_ok: np.ndarray, f: int) -> tuple[float | None, str]:
-    """(relative noise per fitted pixel, its source) against which the verdict judges the residual: as
-    :func:`fitted_noise` where the target states noise_sigma, else the photo's own noise
-    (objcam.transport.auto.estimate_pixel_noise: edges and texture are not noise), not the mean-|Laplacian| reading
-    that weights the prior."""
-    from objcam.transport.auto import estimate_pixel_noise
-
-    if target.noise_sigma:
-        return fitted_noise(target, pooled, pooled_ok, f)
-    est = estimate_pixel_noise(pooled, pooled_ok)
+    est = (estimator or estimate_relative_noise)(pooled, pooled_ok)
     return (float(est), "estimated") if est else (None, "unknown")
 
 

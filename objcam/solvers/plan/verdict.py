@@ -3,7 +3,7 @@
 No ground truth is used: every measure comes from the photo, the model and the solve.
 
 * ``chi2``: the residual per fitted pixel value over the photo's noise (``noise_sigma`` per photo pixel over the
-  pooling, else the photo's own, rules.photo_noise: the median |Laplacian|, which edges and texture do not
+  pooling, else the photo's own, auto.estimate_pixel_noise: the median |Laplacian|, which edges and texture do not
   inflate; the prior's mean-|Laplacian| reading, rules.fitted_noise, counts them and on photographed captures
   reads 1.6-3x more: bench/results.md, session 54), squared and averaged. ~1 when the model explains the photo to its
   noise; far above it, the photo holds light or geometry the model lacks (interreflections, a wrong mesh, a
@@ -99,7 +99,7 @@ from objcam.solvers.plan.defaults import (
     VERDICT_VISIBLE_FRACTION as VISIBLE_FRACTION,
     VERDICT_UNCERTAIN_YELLOW,
 )
-from objcam.solvers.plan.rules import fitted_noise, photo_noise, relative_column_norms
+from objcam.solvers.plan.rules import fitted_noise, relative_column_norms
 from objcam.solvers.plan.targets import TargetData, TargetSolution
 
 GRADES = ("green", "yellow", "red")
@@ -354,10 +354,10 @@ def assess(target, d: TargetData, sol: TargetSolution, lr_rel: float, full: bool
     up_b, rec["brightest_seen"] = brightest_source(env, mask, tr, relative_column_norms(diag, tr.directions))
     rec["brightest_elevation_deg"] = float(np.degrees(np.arcsin(np.clip(up_b, -1, 1))))
     if sigma_rel:
-        from objcam.transport.auto import absolute_noise
+        from objcam.transport.auto import absolute_noise, estimate_pixel_noise
 
-        # the residual against the photo's noise; the posterior's measures below at the prior's (fitted_noise)
-        chi_rel, _ = photo_noise(target, d.pooled, d.pooled_ok, tr.downsample)
+        # the residual against the photo's noise; the posterior's measures below at the prior's reading
+        chi_rel, _ = fitted_noise(target, d.pooled, d.pooled_ok, tr.downsample, estimator=estimate_pixel_noise)
         rec["chi2"], _ = chi2_per_value(y[use], fit, chi_rel or sigma_rel)
         sigma_abs = absolute_noise(y[use], sigma_rel)
         if chi_rel and chi_rel != sigma_rel:
